@@ -1,0 +1,210 @@
+"""The ``Axis`` interface the rest of alignd moves stages through.
+
+Units at this interface are mm (linear) and degrees (rotary), as floats. A driver
+implements the ``_``-prefixed primitives; this base class owns the behaviour that must be
+the same for every vendor: soft-limit and finiteness checks before any byte is sent, the
+backlash approach from one side, the move timeout from distance/speed/acceleration, and
+read-back verification within a deadband with bounded retries.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Self
+
+from drivers.config import AxisConfig
+from drivers.errors import (
+    DeviceFault,
+    DeviceTimeoutError,
+    LimitError,
+    MissedTargetError,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Who a controller says it is (kept in every run record)."""
+
+    vendor: str
+    model: str
+    serial: str
+    firmware: str
+    stage: str = ""
+
+
+@dataclass(frozen=True)
+class AxisStatus:
+    """The controller's flags, decoded to what the procedures need."""
+
+    moving: bool = False
+    homed: bool = False
+    limit_low: bool = False
+    limit_high: bool = False
+    stalled: bool = False  # stall or following error
+    fault: bool = False
+    raw: str = ""
+    messages: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def at_limit(self) -> bool:
+        return self.limit_low or self.limit_high
+
+
+def move_timeout_s(distance: float, speed: float, accel: float, margin: float = 2.0,
+                   floor_s: float = 2.0) -> float:
+    """Time a trapezoidal move of ``distance`` needs, times ``margin``, plus a floor."""
+    d = abs(distance)
+    if speed <= 0 or accel <= 0:
+        return floor_s + 60.0
+    t_ramp = speed / accel
+    d_ramp = speed * t_ramp  # accelerate + decelerate distance
+    t = 2 * math.sqrt(d / accel) if d < d_ramp else 2 * t_ramp + (d - d_ramp) / speed
+    return floor_s + margin * t
+
+
+class Axis(ABC):
+    """One motion axis. Context manager; ``connect``/``close`` are idempotent."""
+
+    def __init__(self, config: AxisConfig, name: str | None = None) -> None:
+        self.config = config
+        self.name = name or config.role
+        self.position_known = False  # False until homed or verified; set False on disconnect
+        self._sleep = time.sleep
+
+    # ---- primitives each driver implements -------------------------------------------
+    @abstractmethod
+    def connect(self) -> None: ...
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    @abstractmethod
+    def identify(self) -> Identity: ...
+
+    @abstractmethod
+    def home(self) -> None:
+        """Run the controller's homing and block until done (or raise)."""
+
+    @abstractmethod
+    def _start_move(self, target: float) -> None:
+        """Send an absolute move to ``target`` (already checked) and return at once."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Stop motion now. Must be safe to call at any time, also when not moving."""
+
+    @abstractmethod
+    def position(self) -> float:
+        """The controller's read-back position in mm or degrees."""
+
+    @abstractmethod
+    def status(self) -> AxisStatus: ...
+
+    @property
+    @abstractmethod
+    def port(self) -> str: ...
+
+    # ---- shared behaviour ------------------------------------------------------------
+    def __enter__(self) -> Self:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def needs_homing(self) -> bool:
+        return not self.status().homed
+
+    def check_target(self, target: float) -> float:
+        """Reject NaN/inf and targets outside the soft limits, before any byte is sent."""
+        lo, hi = self.config.soft_limits.min, self.config.soft_limits.max
+        if not isinstance(target, (int, float)) or not math.isfinite(target):
+            raise LimitError(f"target {target!r} is not a finite number", device=self.name,
+                             port=self.port)
+        if not lo <= target <= hi:
+            raise LimitError(
+                f"target {target:.6g} {self.config.units} outside soft limits [{lo:g}, {hi:g}]",
+                device=self.name, port=self.port)
+        return float(target)
+
+    def move_to(self, target: float) -> float:
+        """Move to ``target``, approaching from the configured side; return the read-back.
+
+        Blocks until the move is done and verified within the deadband, retrying at most
+        ``config.retries`` times. Raises ``LimitError`` before moving for a bad target,
+        ``DeviceTimeoutError`` when a move outlasts its computed timeout, ``DeviceFault``
+        on a controller fault, ``MissedTargetError`` when retries are exhausted.
+        """
+        target = self.check_target(target)
+        cfg = self.config
+        sign = 1.0 if cfg.approach == "+" else -1.0
+        lo, hi = cfg.soft_limits.min, cfg.soft_limits.max
+        here = self.position()
+        reached = here
+        for attempt in range(cfg.retries + 1):
+            # Arrive moving in the approach direction: if the final move would go the other
+            # way (or nowhere), first go past the target by the backlash distance.
+            if cfg.backlash_approach > 0 and (target - here) * sign < cfg.deadband:
+                pre = min(max(target - sign * cfg.backlash_approach, lo), hi)
+                self._move_and_wait(pre, here)
+                here = self.position()
+            self._move_and_wait(target, here)
+            reached = self.position()
+            if abs(reached - target) <= cfg.deadband:
+                self.position_known = True
+                return reached
+            log.warning("%s: read-back %.6g outside deadband %.3g of target %.6g (attempt %d)",
+                        self.name, reached, cfg.deadband, target, attempt + 1)
+            here = reached
+        raise MissedTargetError(
+            f"missed target {target:.6g} {cfg.units}: read-back {reached:.6g} after "
+            f"{cfg.retries + 1} attempts (deadband {cfg.deadband:g})",
+            device=self.name, port=self.port)
+
+    def _move_and_wait(self, target: float, start: float) -> None:
+        cfg = self.config
+        timeout = move_timeout_s(target - start, cfg.speed, cfg.accel) / max(cfg.time_scale, 1e-9)
+        self._start_move(target)
+        self.wait_until_stopped(timeout, command=f"move to {target:.6g}")
+
+    def wait_until_stopped(self, timeout_s: float, command: str = "move") -> AxisStatus:
+        """Poll status until not moving; stop and raise on a fault, limit or timeout."""
+        deadline = time.monotonic() + timeout_s
+        last_pos = None
+        still_since = time.monotonic()
+        while True:
+            st = self.status()
+            if st.stalled or st.fault:
+                self.stop()
+                raise DeviceFault(f"controller fault during {command}: "
+                                  f"{'; '.join(st.messages) or st.raw}",
+                                  device=self.name, port=self.port, command=command)
+            if st.at_limit:
+                self.stop()
+                side = "low" if st.limit_low else "high"
+                raise LimitError(f"hardware {side} limit switch hit during {command}",
+                                 device=self.name, port=self.port, command=command)
+            if not st.moving:
+                return st
+            now = time.monotonic()
+            pos = self.position()
+            if last_pos is None or abs(pos - last_pos) > 1e-9:
+                still_since = now
+            elif now - still_since > self.config.stall_timeout_s / max(self.config.time_scale,
+                                                                        1e-9):
+                self.stop()
+                raise DeviceFault(f"stall: position stuck at {pos:.6g} while moving",
+                                  device=self.name, port=self.port, command=command)
+            last_pos = pos
+            if now > deadline:
+                self.stop()
+                raise DeviceTimeoutError(f"move did not finish within {timeout_s:.1f} s",
+                                         device=self.name, port=self.port, command=command)
+            self._sleep(self.config.poll_interval_s)

@@ -1,0 +1,119 @@
+"""Configuration models of the device layer (controllers, axes, cameras, simulated rig).
+
+Pydantic models with unknown keys rejected and units in field names. ``alignd.config``
+embeds these in the full instrument config; ``alignd-sim`` reads them alone.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+Role = Literal["turntable", "translator", "x", "y", "z"]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SoftLimits(Strict):
+    """Soft travel limits in the axis' units (mm or deg). Both are required."""
+
+    min: float
+    max: float
+
+    @model_validator(mode="after")
+    def _ordered(self) -> SoftLimits:
+        if not self.min < self.max:
+            raise ValueError(f"min ({self.min}) must be below max ({self.max})")
+        return self
+
+
+class AxisConfig(Strict):
+    """One motion axis of a controller, in interface units (mm or deg)."""
+
+    role: Role
+    address: int = Field(1, ge=0, le=255, description="SMC100 address / Zaber device / APT channel")
+    axis: int = Field(1, ge=1, le=9, description="axis number within a multi-axis device")
+    units: Literal["mm", "deg"] = "mm"
+    stage: str = Field("", description="stage model, sets the scale, e.g. MTS25-Z8, X-LSM100A")
+    soft_limits: SoftLimits
+    speed: float = Field(2.0, gt=0, description="units per second")
+    accel: float = Field(10.0, gt=0, description="units per second squared")
+    deadband: float = Field(0.001, gt=0, description="accepted |read-back - target|")
+    retries: int = Field(2, ge=0, le=10)
+    approach: Literal["+", "-"] = "+"
+    backlash_approach: float = Field(0.05, ge=0, description="pre-position distance")
+    stall_timeout_s: float = Field(2.0, gt=0)
+    poll_interval_s: float = Field(0.01, gt=0)
+    home_timeout_s: float = Field(120.0, gt=0)
+    time_scale: float = Field(1.0, gt=0, description="simulated time runs this much faster")
+
+
+class ControllerConfig(Strict):
+    """One controller (one serial port) and the axes it drives."""
+
+    name: str
+    protocol: Literal["smc100", "apt", "zaber"]
+    port: str = Field(..., description="pyserial URL or device path; 'sim' = built-in emulator")
+    baudrate: int | None = None
+    reply_timeout_s: float = Field(0.5, gt=0)
+    axes: list[AxisConfig] = Field(..., min_length=1)
+
+
+class CameraConfig(Strict):
+    """A camera source (contract: camera sources in the design notes)."""
+
+    role: Literal["top", "side"]
+    source: str = Field(..., description="index, device path, file, folder, URL or 'sim'")
+    width: int | None = None
+    height: int | None = None
+    exposure: float | None = None
+    pixel_size_um: float | None = Field(None, gt=0)
+    settle_frames: int = Field(1, ge=0, description="frames discarded after a move")
+
+
+class FaultConfig(Strict):
+    """An injected fault of the simulated rig (see drivers.sim.server)."""
+
+    device: str  # controller name
+    kind: Literal["no_reply", "truncated", "garbled", "bad_checksum", "slow_reply", "late_reply",
+                  "stall", "limit_switch", "disconnect"]
+    after_commands: int = Field(0, ge=0, description="let this many commands through first")
+    count: int = Field(1, ge=0, description="how many commands are hit; 0 = all after")
+    probability: float = Field(1.0, ge=0, le=1)
+    delay_s: float = Field(1.0, ge=0)
+    axis: Role | None = None
+
+
+class SimWorldConfig(Strict):
+    """The simulated world's geometry and imperfections (all lengths in mm)."""
+
+    axis_px: tuple[float, float] = (652.3, 347.8)
+    pixel_size_um: float = 160.0
+    holder_size_mm: tuple[float, float] = (60.0, 40.0)
+    sample_thickness_mm: float = 5.0
+    initial_offset_mm: tuple[float, float] | None = None  # None = random from seed
+    initial_offset_max_mm: float = 4.0
+    yaw_deg: float | None = None  # None = random 1..2 deg
+    stage_skew_deg: float = 1.5  # non-squareness of platform x/y
+    translator_skew_deg: float = 0.8
+    tilt_deg: float = 0.3
+    wobble_um: float = 2.0
+    stage_repeatability_um: float = 0.5
+    backlash_mm: float = 0.004
+    turntable_backlash_deg: float = 0.002
+    turntable_encoder_error_deg: float = 0.003
+    top_camera_zenith_deg: float = 0.5
+    noise_dn: float = 2.0
+
+
+class SimConfig(Strict):
+    """The simulated rig: seed, time scale, world and faults."""
+
+    seed: int = 1
+    time_scale: float = Field(20.0, gt=0)
+    transport: Literal["tcp", "pty"] = "tcp"
+    world: SimWorldConfig = SimWorldConfig()
+    faults: list[FaultConfig] = Field(default_factory=list)
