@@ -3,5 +3,5 @@
 import argparse
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # noqa: ARG001
+def register(sub: argparse._SubParsersAction) -> None:
     """Add this module's subcommands."""

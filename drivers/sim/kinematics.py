@@ -134,7 +134,7 @@ class SimAxis:
         return pos
 
     def encoder_counts(self) -> int:
-        return int(round(self.motor_position() * self.p.counts_per_unit))
+        return round(self.motor_position() * self.p.counts_per_unit)
 
     def encoder_position(self) -> float:
         return self.encoder_counts() / self.p.counts_per_unit

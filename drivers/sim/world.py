@@ -157,7 +157,7 @@ class World:
         return c
 
     def _holder_to_target_tt(self) -> np.ndarray:
-        w, depth = self.cfg.holder_size_mm
+        _w, depth = self.cfg.holder_size_mm
         return rot2(self.yaw_deg) @ np.array([0.0, -(depth / 2 + self.cfg.sample_thickness_mm)])
 
     def holder_corners_tt(self) -> np.ndarray:

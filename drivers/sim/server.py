@@ -1,0 +1,280 @@
+"""Serve an emulator on a pseudo-terminal or a loopback TCP port, with injectable faults.
+
+The server is the emulated controller's cable: it carries bytes between a host program
+(alignd's drivers, vendor software, a terminal) and the emulator's state machine. Faults
+that live on the wire (no reply, truncated/garbled/bad-checksum reply, slow or late reply,
+disconnect) are applied here; mechanical ones (stall, limit switch) are handed to the
+emulator's simulated axes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import logging
+import os
+import select
+import socket
+import threading
+import time
+import tty
+from dataclasses import dataclass
+from typing import Literal, Self
+
+import numpy as np
+
+from drivers.config import FaultConfig
+from drivers.sim.emulator import Emulator
+
+log = logging.getLogger(__name__)
+
+Mode = Literal["tcp", "pty"]
+WIRE_FAULTS = {"no_reply", "truncated", "garbled", "bad_checksum", "slow_reply", "late_reply"}
+
+
+@dataclass
+class _FaultState:
+    cfg: FaultConfig
+    hits: int = 0
+    fired: bool = False  # for one-shot faults (disconnect, stall, limit_switch)
+
+
+class FaultInjector:
+    """Decides, reply by reply, what a configured fault does to the bytes on the wire."""
+
+    def __init__(self, faults: list[FaultConfig], seed: int = 0) -> None:
+        self.faults = [_FaultState(f) for f in faults]
+        self.rng = np.random.default_rng(seed)
+        self.replies = 0
+
+    def _active(self, st: _FaultState, counter: int) -> bool:
+        f = st.cfg
+        if counter < f.after_commands:
+            return False
+        if f.count and st.hits >= f.count:
+            return False
+        return f.probability >= 1.0 or self.rng.random() < f.probability
+
+    def on_reply(self, reply: bytes, emulator: Emulator) -> tuple[bytes, float]:
+        """The bytes to send for one reply and the delay before sending them."""
+        counter = self.replies
+        self.replies += 1
+        delay = 0.0
+        for st in self.faults:
+            kind = st.cfg.kind
+            if kind not in WIRE_FAULTS or not self._active(st, counter):
+                continue
+            st.hits += 1
+            log.info("fault %s on %s reply #%d", kind, emulator.name, counter)
+            if kind == "no_reply":
+                return b"", 0.0
+            if kind == "truncated":
+                reply = reply[: max(1, len(reply) // 2)]
+            elif kind == "garbled":
+                b = bytearray(reply)
+                for i in self.rng.choice(len(b), size=max(1, len(b) // 3), replace=False):
+                    b[i] = int(self.rng.integers(0x21, 0x7F)) ^ (b[i] & 0x80)
+                reply = bytes(b)
+            elif kind == "bad_checksum":
+                reply = emulator.corrupt_checksum(reply)
+            else:  # slow_reply, late_reply
+                delay = max(delay, st.cfg.delay_s)
+        return reply, delay
+
+    def mechanical(self, emulator: Emulator) -> bool:
+        """Fire stall/limit faults when due; True when a disconnect is due."""
+        disconnect = False
+        for st in self.faults:
+            kind = st.cfg.kind
+            if kind in WIRE_FAULTS or st.fired or emulator.commands_seen < st.cfg.after_commands:
+                continue
+            if kind == "disconnect":
+                # mid-move when possible: wait for motion once the command count is reached
+                if any(ax.moving for ax in emulator.axes.values()) or st.cfg.after_commands == 0:
+                    st.fired = disconnect = True
+                continue
+            st.fired = True
+            targets = [ax for addr, ax in emulator.axes.items()
+                       if st.cfg.axis is None or ax.name == st.cfg.axis]
+            for ax in targets:
+                log.info("fault %s on %s axis %s", kind, emulator.name, ax.name)
+                if kind == "stall":
+                    ax.inject_stall()
+                elif kind == "limit_switch":
+                    ax.inject_limit_switch("high")
+        return disconnect
+
+
+class EmulatorServer:
+    """Serves one emulator; ``url`` is what a host passes to ``serial_for_url``."""
+
+    def __init__(self, emulator: Emulator, mode: Mode = "tcp", *,
+                 faults: list[FaultConfig] | None = None, host: str = "127.0.0.1",
+                 port: int = 0, seed: int = 0, poll_interval_s: float = 0.002) -> None:
+        self.emulator = emulator
+        self.mode = mode
+        self.faults = FaultInjector([f for f in (faults or []) if f.device == emulator.name],
+                                    seed)
+        self.host, self.port = host, port
+        self.poll_interval_s = poll_interval_s
+        self.url = ""
+        self.pty_path: str | None = None
+        self.disconnected = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._listener: socket.socket | None = None
+        self._client: socket.socket | None = None
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._pending: list[tuple[float, bytes]] = []
+        self.lock = threading.Lock()  # held while the emulator state changes
+
+    # ---- life cycle --------------------------------------------------------------
+    def start(self) -> Self:
+        if self.mode == "tcp":
+            lst = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            lst.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            lst.bind((self.host, self.port))
+            lst.listen(1)
+            self._listener = lst
+            self.port = lst.getsockname()[1]
+            self.url = f"socket://{self.host}:{self.port}"
+        else:
+            master, slave = os.openpty()
+            tty.setraw(slave)
+            self._master, self._slave = master, slave  # keep the slave open: no EIO on master
+            self.pty_path = os.ttyname(slave)
+            self.url = self.pty_path
+        self._thread = threading.Thread(target=self._run, name=f"sim-{self.emulator.name}",
+                                        daemon=True)
+        self._thread.start()
+        log.info("serving %s (%s) on %s", self.emulator.name, self.emulator.protocol, self.url)
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        self._close_all()
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def endpoint(self) -> dict[str, str | None]:
+        """The endpoint line of the design notes (one JSON object per device)."""
+        return {"device": self.emulator.name, "protocol": self.emulator.protocol,
+                "url": self.url if self.mode == "tcp" else None, "pty": self.pty_path}
+
+    # ---- the loop ----------------------------------------------------------------
+    def _drop_connection(self) -> None:
+        if self._client is not None:
+            with contextlib.suppress(OSError):
+                self._client.close()
+            self._client = None
+
+    def _close_all(self) -> None:
+        self._drop_connection()
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._master = self._slave = None
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
+
+    def _disconnect(self) -> None:
+        """Make the port vanish, as a pulled USB cable does."""
+        log.info("fault disconnect on %s", self.emulator.name)
+        self.disconnected = True
+        self._close_all()
+
+    def _read_fds(self) -> list[object]:
+        fds: list[object] = []
+        if self._listener is not None and self._client is None:
+            fds.append(self._listener)
+        if self._client is not None:
+            fds.append(self._client)
+        if self._master is not None:
+            fds.append(self._master)
+        return fds
+
+    def _send(self, data: bytes) -> None:
+        if not data:
+            return
+        try:
+            if self._client is not None:
+                self._client.sendall(data)
+            elif self._master is not None:
+                os.write(self._master, data)
+        except OSError as exc:
+            log.debug("%s: send failed: %s", self.emulator.name, exc)
+            self._drop_connection()
+
+    def _connected(self) -> bool:
+        return self._client is not None or self._master is not None
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            fds = self._read_fds()
+            if not fds:
+                time.sleep(self.poll_interval_s)
+                continue
+            try:
+                ready, _, _ = select.select(fds, [], [], self.poll_interval_s)
+            except (OSError, ValueError):
+                ready = []
+            for fd in ready:
+                if fd is self._listener and self._listener is not None:
+                    conn, _ = self._listener.accept()
+                    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                    self._client = conn
+                    continue
+                data = self._recv(fd)
+                if data:
+                    self._feed(data)
+            self._tick()
+
+    def _recv(self, fd: object) -> bytes:
+        try:
+            if isinstance(fd, socket.socket):
+                data = fd.recv(4096)
+                if not data:
+                    self._drop_connection()
+                return data
+            return os.read(fd, 4096)  # type: ignore[arg-type]
+        except OSError as exc:
+            if exc.errno not in (errno.EAGAIN, errno.EIO):
+                log.debug("%s: read failed: %s", self.emulator.name, exc)
+            if isinstance(fd, socket.socket):
+                self._drop_connection()
+            return b""
+
+    def _feed(self, data: bytes) -> None:
+        with self.lock:
+            reply = self.emulator.handle(data)
+        if reply:
+            out, delay = self.faults.on_reply(reply, self.emulator)
+            if delay > 0:
+                self._pending.append((time.monotonic() + delay, out))
+            elif self._pending:  # keep order behind a delayed reply
+                self._pending.append((self._pending[-1][0], out))
+            else:
+                self._send(out)
+
+    def _tick(self) -> None:
+        with self.lock:
+            unsolicited = self.emulator.poll()
+            disconnect = self.faults.mechanical(self.emulator)
+        if disconnect:
+            self._disconnect()
+            return
+        now = time.monotonic()
+        while self._pending and self._pending[0][0] <= now:
+            self._send(self._pending.pop(0)[1])
+        if unsolicited and self._connected():
+            self._send(unsolicited)

@@ -1,0 +1,126 @@
+"""The emulator server carries bytes over real ptys and TCP, and injects wire faults."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from drivers.config import FaultConfig
+from drivers.sim.clock import ManualClock
+from drivers.sim.emulator import Emulator
+from drivers.sim.kinematics import AxisPhysics, SimAxis
+from drivers.sim.server import EmulatorServer
+
+
+class LineEcho(Emulator):
+    """A minimal line protocol: 'POS?' answers the axis position, anything else echoes."""
+
+    protocol = "test"
+
+    def __init__(self, name: str, axes: dict[int, SimAxis], clock: ManualClock) -> None:
+        super().__init__(name, axes, clock)
+        self.buf = b""
+
+    def handle(self, data: bytes) -> bytes:
+        self.buf += data
+        out = b""
+        while b"\n" in self.buf:
+            line, self.buf = self.buf.split(b"\n", 1)
+            self.commands_seen += 1
+            if line == b"POS?":
+                out += b"%.3f\n" % self.axes[1].encoder_position()
+            elif line.startswith(b"MOVE "):
+                self.axes[1].move_to(float(line[5:]))
+                out += b"OK\n"
+            else:
+                out += b"ECHO " + line + b"\n"
+        return out
+
+
+def make_emulator() -> tuple[LineEcho, ManualClock]:
+    clock = ManualClock()
+    ax = SimAxis("x", AxisPhysics(0, 50, 5, 20, 1000, requires_homing=False), clock,
+                 np.random.default_rng(0), start=10.0)
+    return LineEcho("dev", {1: ax}, clock), clock
+
+
+def exchange(port: serial.SerialBase, line: bytes) -> bytes:
+    port.write(line + b"\n")
+    return port.readline()
+
+
+@pytest.mark.parametrize("mode", ["tcp", "pty"])
+def test_bytes_both_ways(mode: str) -> None:
+    emu, clock = make_emulator()
+    with EmulatorServer(emu, mode) as srv:
+        assert srv.url.startswith("socket://127.0.0.1:" if mode == "tcp" else "/dev/pts/")
+        with serial.serial_for_url(srv.url, timeout=1.0) as port:
+            assert exchange(port, b"hello") == b"ECHO hello\n"
+            assert exchange(port, b"POS?") == b"10.000\n"
+            assert exchange(port, b"MOVE 12") == b"OK\n"
+            clock.advance(5.0)
+            assert exchange(port, b"POS?") == b"12.000\n"
+    assert emu.axes[1].targets == [12.0]
+
+
+@pytest.mark.parametrize(("kind", "check"), [
+    ("no_reply", lambda r: r == b""),
+    ("truncated", lambda r: r == b"ECHO ab"),  # first half of 14 bytes
+    ("garbled", lambda r: r != b"ECHO abcdefgh\n"),
+])
+def test_wire_faults_hit_only_the_chosen_replies(kind: str, check) -> None:
+    emu, _ = make_emulator()
+    fault = FaultConfig(device="dev", kind=kind, after_commands=1, count=1)
+    with EmulatorServer(emu, "tcp", faults=[fault]) as srv, \
+            serial.serial_for_url(srv.url, timeout=0.3) as port:
+        assert exchange(port, b"abcdefgh") == b"ECHO abcdefgh\n"
+        port.write(b"abcdefgh\n")
+        time.sleep(0.1)
+        got = port.read(64)
+        assert check(got), got
+        assert exchange(port, b"again") == b"ECHO again\n"
+
+
+def test_late_reply_arrives_after_the_next_command() -> None:
+    emu, _ = make_emulator()
+    fault = FaultConfig(device="dev", kind="late_reply", count=1, delay_s=0.4)
+    with EmulatorServer(emu, "tcp", faults=[fault]) as srv, \
+            serial.serial_for_url(srv.url, timeout=0.2) as port:
+        assert exchange(port, b"first") == b""  # timed out
+        port.timeout = 1.0
+        assert exchange(port, b"second") == b"ECHO first\n"  # the stale answer comes first
+        assert port.readline() == b"ECHO second\n"
+
+
+def test_disconnect_mid_move_makes_the_port_vanish() -> None:
+    emu, _ = make_emulator()
+    fault = FaultConfig(device="dev", kind="disconnect", after_commands=1)
+    with EmulatorServer(emu, "tcp", faults=[fault]) as srv, \
+            serial.serial_for_url(srv.url, timeout=0.5) as port:
+        assert exchange(port, b"MOVE 40") == b"OK\n"  # moving now: the cable is pulled
+        deadline = time.monotonic() + 2.0
+        while not srv.disconnected and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert srv.disconnected
+        with pytest.raises(serial.SerialException):
+            for _ in range(5):
+                port.write(b"POS?\n")
+                if port.read(16) == b"":
+                    raise serial.SerialException("closed")
+
+
+def test_stall_fault_freezes_the_axis_while_it_reports_moving() -> None:
+    emu, clock = make_emulator()
+    fault = FaultConfig(device="dev", kind="stall", after_commands=1)
+    with EmulatorServer(emu, "tcp", faults=[fault]) as srv, \
+            serial.serial_for_url(srv.url, timeout=0.5) as port:
+        assert exchange(port, b"MOVE 40") == b"OK\n"
+        time.sleep(0.05)
+        clock.advance(0.5)
+        first = emu.axes[1].motor_position()
+        clock.advance(2.0)
+        assert emu.axes[1].moving
+        assert emu.axes[1].motor_position() == first
