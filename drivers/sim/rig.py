@@ -1,0 +1,115 @@
+"""The simulated rig: one world, its simulated axes, emulated controllers on ports, cameras.
+
+Built from the same controller/camera config the instrument uses; a controller whose
+``port`` is ``sim`` is served by its protocol's emulator on a loopback TCP port or a pty.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import logging
+import threading
+from typing import TYPE_CHECKING, Literal, Self
+
+import numpy as np
+
+from drivers.config import AxisConfig, CameraConfig, ControllerConfig, SimConfig
+from drivers.sim.clock import Clock, ScaledClock
+from drivers.sim.emulator import Emulator
+from drivers.sim.kinematics import AxisPhysics, SimAxis
+from drivers.sim.server import EmulatorServer
+from drivers.sim.world import World
+
+if TYPE_CHECKING:
+    from drivers.sim.sim_camera import SimCamera
+
+log = logging.getLogger(__name__)
+
+# protocol -> (module, emulator class); each module also has physics_for(AxisConfig)
+EMULATORS = {
+    "smc100": ("drivers.sim.smc100_emu", "Smc100Emulator"),
+    "apt": ("drivers.sim.apt_emu", "AptEmulator"),
+    "zaber": ("drivers.sim.zaber_emu", "ZaberEmulator"),
+}
+
+
+def _physics(protocol: str, axis: AxisConfig, sim: SimConfig) -> AxisPhysics:
+    module = importlib.import_module(EMULATORS[protocol][0])
+    phys: AxisPhysics = module.physics_for(axis)
+    w = sim.world
+    if axis.units == "deg":
+        return dataclasses.replace(phys, backlash=w.turntable_backlash_deg)
+    return dataclasses.replace(phys, backlash=w.backlash_mm,
+                               repeatability=w.stage_repeatability_um / 1000.0)
+
+
+class SimRig:
+    """Everything simulated, started and stopped together."""
+
+    def __init__(self, controllers: list[ControllerConfig], cameras: list[CameraConfig],
+                 sim: SimConfig, *, seed: int | None = None, clock: Clock | None = None,
+                 transport: Literal["tcp", "pty"] | None = None) -> None:
+        self.sim = sim
+        self.seed = sim.seed if seed is None else seed
+        self.clock = clock or ScaledClock(sim.time_scale)
+        self.transport = transport or sim.transport
+        rng = np.random.default_rng(self.seed)
+        streams = rng.spawn(8)
+        self.axes: dict[str, SimAxis] = {}
+        self.emulators: dict[str, Emulator] = {}
+        for ctl in controllers:
+            if ctl.port != "sim":
+                continue
+            mod_name, cls_name = EMULATORS[ctl.protocol]
+            by_address: dict[int, SimAxis] = {}
+            for ax in ctl.axes:
+                phys = _physics(ctl.protocol, ax, sim)
+                # power-on: somewhere near mid-travel, not referenced
+                mid = (phys.travel_min + phys.travel_max) / 2
+                if ax.units == "deg":
+                    mid = 0.0
+                start = mid + float(streams[0].normal(0, 0.2))
+                sim_axis = SimAxis(ax.role, phys, self.clock, streams[1], start=start)
+                by_address[ax.address] = sim_axis
+                self.axes[ax.role] = sim_axis
+            cls = getattr(importlib.import_module(mod_name), cls_name)
+            self.emulators[ctl.name] = cls(ctl.name, by_address, self.clock)
+        self.world = World(sim.world, self.axes, streams[2])
+        self.lock = threading.Lock()
+        self.camera_configs = {c.role: c for c in cameras if c.source == "sim"}
+        self.servers: dict[str, EmulatorServer] = {}
+        self._camera_seed = int(streams[3].integers(2**31))
+
+    def start(self) -> Self:
+        for i, (name, emu) in enumerate(self.emulators.items()):
+            srv = EmulatorServer(emu, self.transport, faults=list(self.sim.faults),
+                                 seed=self.seed + i)
+            self.servers[name] = srv.start()
+        return self
+
+    def stop(self) -> None:
+        for srv in self.servers.values():
+            srv.stop()
+        self.servers.clear()
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def url(self, controller: str) -> str:
+        return self.servers[controller].url
+
+    def endpoints(self) -> list[dict[str, str | None]]:
+        return [srv.endpoint() for srv in self.servers.values()]
+
+    def camera(self, role: Literal["top", "side"]) -> SimCamera:
+        from drivers.sim.sim_camera import SimCamera  # the renderer is only loaded when used
+
+        return SimCamera(self.world, role, seed=self._camera_seed + (role == "side"))
+
+    def truth(self) -> dict[str, object]:
+        """Ground truth from the simulator (never read by the alignment loop)."""
+        return self.world.truth()
