@@ -75,7 +75,8 @@ class Axis(ABC):
         self.config = config
         self.name = name or config.role
         self.position_known = False  # False until homed or verified; set False on disconnect
-        self._sleep = time.sleep
+        self._sleep = time.sleep  # injectable, with _now, so tests need not wait
+        self._now = time.monotonic
 
     # ---- primitives each driver implements -------------------------------------------
     @abstractmethod
@@ -176,9 +177,9 @@ class Axis(ABC):
 
     def wait_until_stopped(self, timeout_s: float, command: str = "move") -> AxisStatus:
         """Poll status until not moving; stop and raise on a fault, limit or timeout."""
-        deadline = time.monotonic() + timeout_s
+        deadline = self._now() + timeout_s
         last_pos = None
-        still_since = time.monotonic()
+        still_since = self._now()
         while True:
             st = self.status()
             if st.stalled or st.fault:
@@ -193,7 +194,7 @@ class Axis(ABC):
                                  device=self.name, port=self.port, command=command)
             if not st.moving:
                 return st
-            now = time.monotonic()
+            now = self._now()
             pos = self.position()
             if last_pos is None or abs(pos - last_pos) > 1e-9:
                 still_since = now

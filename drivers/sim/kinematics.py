@@ -119,6 +119,10 @@ class SimAxis:
 
     # ---- what controllers read -----------------------------------------------------
     def motor_position(self) -> float:
+        return self._refresh()[0]
+
+    def _refresh(self) -> tuple[float, bool]:
+        """Position and running state now, with arrival events (homed, limits) applied."""
         t = self.clock.now()
         self._update_faults(t)
         pos, running = self._profile(t)
@@ -131,7 +135,7 @@ class SimAxis:
             elif self._limit_on_arrival == "high":
                 self.limit_high = True
             self._limit_on_arrival = None
-        return pos
+        return pos, running
 
     def encoder_counts(self) -> int:
         return round(self.motor_position() * self.p.counts_per_unit)
@@ -141,9 +145,7 @@ class SimAxis:
 
     @property
     def moving(self) -> bool:
-        t = self.clock.now()
-        self._update_faults(t)
-        return self._profile(t)[1]
+        return self._refresh()[1]
 
     @property
     def settled(self) -> bool:
