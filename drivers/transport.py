@@ -7,7 +7,9 @@ platform supports it, so a second process cannot interleave bytes with ours.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import socket
 import threading
 import time
 from typing import Self
@@ -17,6 +19,14 @@ import serial
 from drivers.errors import DeviceTimeoutError, PortBusyError, TransportError
 
 log = logging.getLogger(__name__)
+
+try:  # pyserial's POSIX backend lets termios.error (not an OSError) escape, e.g. tcdrain
+    import termios  # on a pty whose other end has gone
+
+    _IO_ERRORS: tuple[type[BaseException], ...] = (OSError, serial.SerialException,
+                                                   termios.error)
+except ImportError:  # pragma: no cover - Windows
+    _IO_ERRORS = (OSError, serial.SerialException)
 
 
 class SerialTransport:
@@ -58,6 +68,10 @@ class SerialTransport:
         except (OSError, ValueError) as exc:
             raise TransportError(f"cannot open port: {exc}", device=self.device,
                                  port=self.url) from exc
+        sock = getattr(ser, "_socket", None)  # socket://: no Nagle delay on short commands
+        if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._ser = ser
         log.debug("%s: opened %s", self.device, self.url)
 
@@ -94,7 +108,7 @@ class SerialTransport:
         try:
             ser.write(data)
             ser.flush()
-        except (OSError, serial.SerialException) as exc:
+        except _IO_ERRORS as exc:
             self.close()
             raise TransportError(f"write failed: {exc}", device=self.device, port=self.url,
                                  command=command) from exc
@@ -144,7 +158,7 @@ class SerialTransport:
             ser.timeout = min(remaining, self.timeout_s)
             waiting = ser.in_waiting if hasattr(ser, "in_waiting") else 0
             chunk = ser.read(max(1, min(n, waiting)) if waiting else 1)
-        except (OSError, serial.SerialException, TypeError) as exc:
+        except (*_IO_ERRORS, TypeError) as exc:
             self.close()
             raise TransportError(f"read failed (port vanished?): {exc}", device=self.device,
                                  port=self.url, command=command) from exc
@@ -163,7 +177,7 @@ class SerialTransport:
                 if not chunk:
                     break
                 junk += chunk
-        except (OSError, serial.SerialException) as exc:
+        except _IO_ERRORS as exc:
             self.close()
             raise TransportError(f"read failed (port vanished?): {exc}", device=self.device,
                                  port=self.url) from exc
