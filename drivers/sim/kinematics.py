@@ -180,12 +180,13 @@ class SimAxis:
             if self.p.repeatability > 0 else 0.0
 
     def home(self) -> None:
-        self.homing = True
-        self.homed = False
         self.stalled = False
         self._frozen_at = None
         self.move_to(self.p.home_position, self.p.home_speed)
         self.targets.pop()  # homing is not a commanded target
+        # flags after the move starts: move_to's position read would complete "homing"
+        self.homing = True
+        self.homed = False
 
     def stop(self) -> None:
         """Stop now (a real stop decelerates; a short ramp is negligible here)."""
