@@ -1,0 +1,90 @@
+"""The result of one run, and its JSON per the run-result contract (DESIGN.md).
+
+Contract keys: ``run_id``, ``verdict``, ``offset_um`` ([x, y], turntable frame),
+``offset_norm_um``, ``U_um`` (expanded uncertainty, k = 2), ``iterations``, ``tilt_deg``,
+``yaw_deg``, ``reason``; on a simulated rig also ``truth`` (``offset_um``,
+``offset_norm_um``) read from the simulator after the run, never by the loop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+Verdict = Literal["aligned", "within_tolerance", "out_of_tolerance", "not_converged",
+                  "aborted", "fault"]
+VERDICTS: tuple[str, ...] = ("aligned", "within_tolerance", "out_of_tolerance",
+                             "not_converged", "aborted", "fault")
+
+# contract: exit codes. 0 ok / within tolerance, 1 out of tolerance or not converged
+# (an aborted run did not reach its goal either), 2 usage or config error, 3 fault.
+EXIT_CODES: dict[str, int] = {"aligned": 0, "within_tolerance": 0, "out_of_tolerance": 1,
+                              "not_converged": 1, "aborted": 1, "fault": 3}
+
+
+def _num(x: float | None, nd: int = 3) -> float | None:
+    if x is None or not math.isfinite(x):
+        return None
+    return round(float(x), nd)
+
+
+@dataclass
+class RunResult:
+    """Outcome of ``run_alignment`` / ``run_check``; ``details`` holds the full record."""
+
+    run_id: str
+    mode: Literal["align", "check"]
+    verdict: Verdict
+    reason: str = ""
+    offset_um: tuple[float, float] | None = None
+    U_um: float | None = None
+    iterations: int = 0
+    tilt_deg: float | None = None
+    yaw_deg: float | None = None
+    truth: dict[str, Any] | None = None
+    config_error: bool = False  # the fault was a config problem (exit code 2)
+    details: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.verdict not in VERDICTS:
+            raise ValueError(f"unknown verdict {self.verdict!r}")
+
+    @property
+    def offset_norm_um(self) -> float | None:
+        return None if self.offset_um is None else float(math.hypot(*self.offset_um))
+
+    @property
+    def ok(self) -> bool:
+        return self.verdict in ("aligned", "within_tolerance")
+
+    @property
+    def exit_code(self) -> int:
+        if self.verdict == "fault" and self.config_error:
+            return 2
+        return EXIT_CODES[self.verdict]
+
+    def to_json(self) -> dict[str, Any]:
+        """The run-result contract object (JSON-ready: floats, lists, None)."""
+        off = None if self.offset_um is None else [_num(v) for v in self.offset_um]
+        out: dict[str, Any] = {
+            "run_id": self.run_id,
+            "verdict": self.verdict,
+            "offset_um": off,
+            "offset_norm_um": _num(self.offset_norm_um),
+            "U_um": _num(self.U_um),
+            "iterations": int(self.iterations),
+            "tilt_deg": _num(self.tilt_deg, 4),
+            "yaw_deg": _num(self.yaw_deg, 4),
+            "reason": self.reason,
+        }
+        if self.truth is not None:
+            t_off = [float(v) for v in self.truth["offset_um"]]
+            out["truth"] = {"source": "simulator (read after the run, never by the loop)",
+                            "offset_um": [_num(v) for v in t_off],
+                            "offset_norm_um": _num(math.hypot(*t_off))}
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """The contract object plus mode and the full details (for the run record)."""
+        return {**self.to_json(), "mode": self.mode, "details": self.details}

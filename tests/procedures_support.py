@@ -1,0 +1,51 @@
+"""Shared set-up of the procedure tests: the reference config, a direct simulated rig, and
+stand-in measuring tools (the world's projected corners plus seeded noise, real solver)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from alignd import solve as solver
+from alignd.config import AligndConfig, load_config
+from alignd.procedures import Rig, Tools
+from alignd.procedures.tools import Corners, as_corners
+from drivers.camera import Frame
+from drivers.sim.direct import build_direct_rig, scene_tracker
+from drivers.sim.world import World
+
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sim.yaml"
+
+
+def sim_config(**procedure: Any) -> AligndConfig:
+    cfg = load_config(CONFIG)
+    if procedure:
+        cfg = cfg.model_copy(update={"procedure": cfg.procedure.model_copy(update=procedure)})
+    return cfg
+
+
+def scene_rig(cfg: AligndConfig, seed: int, **kw: Any) -> tuple[Rig, World]:
+    return build_direct_rig(cfg, seed, camera_kind="scene", **kw)
+
+
+def standin_tools(seed: int, sigma_px: float = 0.01, track: Any = None) -> Tools:
+    """Tracker: true corners + N(0, sigma_px); solver: the real ``alignd.solve``."""
+    tracker = scene_tracker(sigma_px, np.random.default_rng(seed + 1000))
+
+    def track_fn(frame: Frame) -> Corners:
+        return as_corners(tracker(frame))
+
+    def solve_fn(angles: np.ndarray, points: np.ndarray, px: float | None) -> Any:
+        return solver.solve_centre(solver.Sweep(np.asarray(angles), np.asarray(points), px))
+
+    def tilt_fn(frame: Frame) -> float:
+        return float(frame.metadata["tilt_deg"])
+
+    return Tools(track=track or track_fn, solve=solve_fn, tilt=tilt_fn, eccentricity=None)
+
+
+def commanded(rig: Rig, role: str) -> list[float]:
+    """Every target the simulated axis of ``role`` was ever commanded."""
+    return list(rig.sim_parts.sim_axes[role].targets)  # type: ignore[attr-defined]

@@ -1,0 +1,217 @@
+"""The closed loop on the direct simulated rig: convergence against the simulator's truth,
+abort, clamping, check without translation moves, refusal on failed data, device faults."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+from procedures_support import commanded, scene_rig, sim_config, standin_tools
+
+from alignd.procedures import MemoryRecorder, ProgressEvent, run_alignment, run_check
+from alignd.procedures.tools import Corners
+from alignd.solve import parse_sweep
+
+TRANSLATIONS = ("x", "y", "z", "translator")
+CONTRACT_KEYS = {"run_id", "verdict", "offset_um", "offset_norm_um", "U_um", "iterations",
+                 "tilt_deg", "yaw_deg", "reason"}
+
+
+@pytest.mark.parametrize("seed", [1, 7, 23])
+def test_alignment_converges_to_the_true_axis(seed: int) -> None:
+    cfg = sim_config()
+    rig, world = scene_rig(cfg, seed)
+    start = world.truth()["offset_norm_um"]
+    rec = MemoryRecorder()
+    events: list[ProgressEvent] = []
+    res = run_alignment(rig, cfg, tools=standin_tools(seed), recorder=rec,
+                        progress=events.append, abort=threading.Event())
+    out = res.to_json()
+    assert start > 1000  # a few mm of initial misalignment
+    assert out["verdict"] == "aligned", out["reason"]
+    assert set(out) == CONTRACT_KEYS | {"truth"}
+    truth = out["truth"]["offset_um"]
+    assert out["truth"]["offset_norm_um"] <= cfg.procedure.tolerance_um
+    # the reported offset agrees with the simulator's within its expanded uncertainty
+    err = math.hypot(out["offset_um"][0] - truth[0], out["offset_um"][1] - truth[1])
+    assert err <= out["U_um"]
+    assert 1 <= out["iterations"] <= cfg.procedure.max_iterations
+    assert out["yaw_deg"] == pytest.approx(world.yaw_deg, abs=0.05)
+    assert out["tilt_deg"] == pytest.approx(world.cfg.tilt_deg, abs=1e-6)
+    assert res.exit_code == 0
+    # raw data: contract sweep files, one record per iteration, progress with offsets
+    kinds = [s.kind for s in rec.sweeps]
+    assert kinds[0] == "calibration" and kinds[-1] == "verify"
+    for s in rec.sweeps[1:]:
+        sw = parse_sweep(s.sweep_json)
+        assert sw.n_frames == cfg.procedure.sweep_steps and sw.n_features == 4
+        np.testing.assert_allclose(sw.angles_deg, s.readback)
+    assert rec.iterations[-1][1]["action"] == "done"
+    assert any(e.phase == "sweep" and e.total == cfg.procedure.sweep_steps for e in events)
+    assert events[-1].phase == "done" and events[-1].offset_norm_um is not None
+    # the turntable is parked at zero afterwards
+    assert rig.axis("turntable").position() == pytest.approx(0.0, abs=0.002)
+
+
+def test_abort_mid_move_stops_every_axis() -> None:
+    cfg = sim_config()
+    rig, _ = scene_rig(cfg, 4)
+    abort = threading.Event()
+    abort.reason = "operator pressed abort"  # type: ignore[attr-defined]
+
+    def progress(ev: ProgressEvent) -> None:
+        if ev.phase == "move":  # the first correction move has just been commanded
+            abort.set()
+
+    res = run_alignment(rig, cfg, tools=standin_tools(4), progress=progress, abort=abort)
+    assert res.verdict == "aborted"
+    assert "operator pressed abort" in res.reason
+    sims = rig.sim_parts.sim_axes  # type: ignore[attr-defined]
+    assert not any(ax.moving for ax in sims.values())
+    # the move was cut short: the axis stopped before its commanded correction target
+    x = sims["x"]
+    assert abs(x.motor_position() - x.targets[-1]) > 0.01
+    assert res.exit_code == 1
+
+
+def test_abort_between_sweep_steps() -> None:
+    cfg = sim_config()
+    rig, _ = scene_rig(cfg, 4)
+    abort = threading.Event()
+    seen = []
+
+    def progress(ev: ProgressEvent) -> None:
+        seen.append(ev)
+        if ev.phase == "sweep" and ev.step == 5:
+            abort.set()
+
+    res = run_alignment(rig, cfg, tools=standin_tools(4), progress=progress, abort=abort)
+    assert res.verdict == "aborted" and res.reason == "aborted: abort requested"
+    sweep_steps = [e.step for e in seen if e.phase == "sweep"]
+    assert max(sweep_steps) == 5  # nothing after the abort
+    assert not any(ax.moving for ax in rig.sim_parts.sim_axes.values())  # type: ignore
+
+
+def test_too_large_step_is_clamped() -> None:
+    cfg = sim_config(max_step_mm=0.5, max_iterations=3)
+    rig, world = scene_rig(cfg, 8)
+    assert world.truth()["offset_norm_um"] > 1500
+    rec = MemoryRecorder()
+    res = run_alignment(rig, cfg, tools=standin_tools(8), recorder=rec)
+    moves = [r for _, r in rec.iterations if r.get("action") == "move"]
+    assert moves and all(r.get("clamped") for r in moves)
+    for r in moves:
+        want = np.array([r["targets_mm"]["x"], r["targets_mm"]["y"]])
+        before = np.array([r["before_mm"]["x"], r["before_mm"]["y"]])
+        got = np.array([r["readback_mm"]["x"], r["readback_mm"]["y"]])
+        assert np.max(np.abs(want - before)) == pytest.approx(0.5)  # the larger one at the cap
+        np.testing.assert_allclose(got, want, atol=0.001)
+    # and the stages were never commanded further than the step (plus backlash approach)
+    for role in ("x", "y"):
+        t = np.array(commanded(rig, role)[16:])  # after the calibration moves
+        assert np.all(np.abs(t - 25.4) <= 3 * 0.5 + 0.1 + 1e-3)
+    assert res.verdict == "not_converged"
+    assert "cap" in res.reason and res.exit_code == 1
+    assert any("clamped to max_step_mm 0.5" in w for w in res.details["warnings"])
+
+
+def test_check_moves_no_translation_stage() -> None:
+    cfg = sim_config()
+    rig, world = scene_rig(cfg, 9)
+    res = run_check(rig, cfg, tools=standin_tools(9))
+    for role in TRANSLATIONS:
+        assert commanded(rig, role) == [], role
+    assert len(commanded(rig, "turntable")) >= cfg.procedure.sweep_steps
+    assert res.verdict == "out_of_tolerance" and res.exit_code == 1
+    truth = world.truth()["offset_um"]
+    assert res.offset_um is not None
+    assert math.hypot(res.offset_um[0] - truth[0], res.offset_um[1] - truth[1]) <= res.U_um
+
+
+def test_check_after_alignment_is_within_tolerance() -> None:
+    cfg = sim_config()
+    rig, _ = scene_rig(cfg, 1)
+    assert run_alignment(rig, cfg, tools=standin_tools(1)).verdict == "aligned"
+    before = {r: len(commanded(rig, r)) for r in TRANSLATIONS}
+    res = run_check(rig, cfg, tools=standin_tools(2))
+    assert res.verdict == "within_tolerance", res.reason
+    assert res.to_json()["offset_norm_um"] <= cfg.procedure.tolerance_um
+    assert {r: len(commanded(rig, r)) for r in TRANSLATIONS} == before
+
+
+def _failing_tracker(ok_calls: int):
+    calls = {"n": 0}
+    base = standin_tools(6).track
+
+    def track(frame):
+        calls["n"] += 1
+        if calls["n"] > ok_calls:
+            return Corners(np.full((4, 2), np.nan), False, 0.0, "holder not found")
+        return base(frame)
+
+    return track
+
+
+def test_missing_holder_means_no_move_and_a_clear_reason() -> None:
+    cfg = sim_config()
+    rig, _ = scene_rig(cfg, 6)
+    res = run_alignment(rig, cfg, tools=standin_tools(6, track=_failing_tracker(0)))
+    assert res.verdict == "fault" and res.exit_code == 3
+    assert "holder not found" in res.reason and "nothing moved" in res.reason
+    for role in (*TRANSLATIONS, "turntable"):
+        assert commanded(rig, role) == [], role
+
+
+def test_tracking_lost_mid_run_makes_no_correction_move() -> None:
+    cfg = sim_config()
+    rig, _ = scene_rig(cfg, 6)
+    # holder check (1) + calibration (16) + first sweep (21) tracked, then it is gone
+    rec = MemoryRecorder()
+    res = run_alignment(rig, cfg, tools=standin_tools(6, track=_failing_tracker(1 + 16 + 21)),
+                        recorder=rec)
+    assert res.verdict == "fault"
+    assert "tracked in only 0 of 21 frames" in res.reason and "no move made" in res.reason
+    x_targets = commanded(rig, "x")
+    moves = [r for _, r in rec.iterations if r.get("action") == "move"]
+    assert len(moves) == 1  # the move after the good first sweep, none after the bad one
+    assert x_targets[-1] == pytest.approx(moves[0]["targets_mm"]["x"])
+
+
+def test_too_uncertain_centre_is_refused_without_a_move() -> None:
+    cfg = sim_config(max_center_sigma_um=0.5)
+    rig, _ = scene_rig(cfg, 12)
+    rec = MemoryRecorder()
+    res = run_alignment(rig, cfg, tools=standin_tools(12, sigma_px=0.05), recorder=rec)
+    assert res.verdict == "not_converged"
+    assert "centre uncertainty" in res.reason and "no move made" in res.reason
+    assert [r.get("action") for _, r in rec.iterations] == ["refused"]
+    assert max(commanded(rig, "x"), key=lambda t: abs(t - 25.4)) <= 25.4 + 0.5 + 1e-9
+
+
+def test_device_fault_stops_all_and_reports_the_error() -> None:
+    cfg = sim_config()
+    rig, _ = scene_rig(cfg, 13)
+    events = []
+
+    def progress(ev: ProgressEvent) -> None:
+        events.append(ev)
+        if ev.phase == "move" and len([e for e in events if e.phase == "move"]) == 1:
+            rig.sim_parts.sim_axes["x"].inject_stall()  # type: ignore[attr-defined]
+
+    res = run_alignment(rig, cfg, tools=standin_tools(13), progress=progress)
+    assert res.verdict == "fault" and res.exit_code == 3
+    assert "device error" in res.reason and "stall" in res.reason
+    assert "platform.x" in res.reason  # names the device
+    assert not any(ax.moving for ax in rig.sim_parts.sim_axes.values())  # type: ignore
+
+
+def test_homes_unreferenced_axes_and_parks_them_mid_travel() -> None:
+    cfg = sim_config()
+    rig, _ = scene_rig(cfg, 14, homed=False)
+    res = run_alignment(rig, cfg, tools=standin_tools(14))
+    sims = rig.sim_parts.sim_axes  # type: ignore[attr-defined]
+    assert all(ax.homed for ax in sims.values())
+    assert commanded(rig, "z")[0] == pytest.approx(25.0)  # middle of its soft limits
+    assert res.verdict == "aligned", res.reason
