@@ -26,7 +26,8 @@ class SimCamera(Camera):
         super().__init__(f"{role}-camera", f"sim:{role}")
         self.world = world
         self.role = role
-        self.opts = opts or render.RenderOptions(noise_dn=world.cfg.noise_dn)
+        self.opts = opts or render.RenderOptions(read_noise_dn=world.cfg.noise_dn,
+                                                 gradient=(0.08, 0.04))
         self.rng = np.random.default_rng(seed)
         self.lock = lock or threading.Lock()
         self._seq = 0
