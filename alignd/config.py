@@ -46,6 +46,10 @@ class ProcedureConfig(Strict):
     max_step_mm: float = Field(5.0, gt=0)
     max_center_sigma_um: float = Field(20.0, gt=0)
     calibration_step_mm: float = Field(0.5, gt=0)
+    frames_per_step: int = Field(1, ge=1, le=50, description="frames averaged per sweep step")
+    systematic_um: float = Field(3.0, ge=0, description=(
+        "per-axis systematic standard uncertainty of the offset (bearing error motion, "
+        "scale), added to the statistical part"))
     correction_axes: tuple[str, str] = ("x", "y")
     pixel_size_tolerance: float = Field(0.15, gt=0, lt=1,
                                         description="accepted calibration/config disagreement")

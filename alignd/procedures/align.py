@@ -44,12 +44,11 @@ HOLDER_LOOK_FRAMES = 3
 # tolerance or within its own noise (2 sigma): moves are cheap, chasing noise is not
 RESIDUAL_FRACTION = 0.3
 CONFORMANCE = 0.95  # "within tolerance" needs P(|offset| <= tolerance) >= this
-# 1-sigma per axis that no sweep averages out: the turntable's radial error motion. Over a
-# +-10 deg sweep a radial error motion that changes with the angle is indistinguishable
-# from a shifted centre (a 2 um third-harmonic wobble shifts it by up to 6 um), and every
-# sweep sees the same one. 3 um suits a precision rotation stage (eccentricity/wobble of a
-# few um); a rig with a better or worse bearing should pass its own value.
-SYSTEMATIC_UM = 3.0
+# ``procedure.systematic_um``: the 1-sigma per axis that no sweep averages out, the
+# turntable's radial error motion. Over a +-10 deg sweep a radial error motion that changes
+# with the angle is indistinguishable from a shifted centre (a 2 um third-harmonic wobble
+# shifts it by up to 6 um), and every sweep sees the same one. 3 um suits a precision
+# rotation stage; a rig with a better or worse bearing sets its own value.
 
 
 class _Stop(AligndError):
@@ -77,7 +76,8 @@ class _State:
 def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
                   abort: threading.Event | None = None, recorder: RunRecorder | None = None,
                   tools: Tools | None = None, run_id: str | None = None,
-                  frames_per_step: int = 1, systematic_um: float = SYSTEMATIC_UM) -> RunResult:
+                  frames_per_step: int | None = None,
+                  systematic_um: float | None = None) -> RunResult:
     """Align the sample's target point onto the rotation axis (see the module docstring)."""
     return _Run(rig, cfg, "align", progress, abort, recorder, tools, run_id,
                 frames_per_step, systematic_um).execute()
@@ -86,7 +86,8 @@ def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | N
 def run_check(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
               abort: threading.Event | None = None, recorder: RunRecorder | None = None,
               tools: Tools | None = None, run_id: str | None = None,
-              frames_per_step: int = 1, systematic_um: float = SYSTEMATIC_UM) -> RunResult:
+              frames_per_step: int | None = None,
+                  systematic_um: float | None = None) -> RunResult:
     """Measure the offset against the tolerance; no translation stage moves.
 
     Sweeps (pooling the centre) until the offset is shown within or beyond the tolerance
@@ -110,8 +111,8 @@ class _Run:
     def __init__(self, rig: Rig, cfg: AligndConfig, mode: Literal["align", "check"],
                  progress: ProgressCallback | None, abort: threading.Event | None,
                  recorder: RunRecorder | None, tools: Tools | None,
-                 run_id: str | None, frames_per_step: int = 1,
-                 systematic_um: float = SYSTEMATIC_UM) -> None:
+                 run_id: str | None, frames_per_step: int | None = None,
+                 systematic_um: float | None = None) -> None:
         self.rig = rig
         self.cfg = cfg
         self.mode = mode
@@ -123,8 +124,10 @@ class _Run:
         self.st = _State()
         self.p = cfg.procedure
         self.tol = self.p.tolerance_um
-        self.frames_per_step = frames_per_step
-        self.systematic_um = systematic_um
+        # explicit arguments (benchmarks) override the config
+        self.frames_per_step = frames_per_step or cfg.procedure.frames_per_step
+        self.systematic_um = (cfg.procedure.systematic_um if systematic_um is None
+                              else systematic_um)
         self.pool = CentrePool()
 
     # ---- top level -------------------------------------------------------------------
