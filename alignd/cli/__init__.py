@@ -24,6 +24,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"alignctl {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more log output (-vv for wire traffic)")
+    parser.add_argument("--socket", metavar="PATH", default=None,
+                        help="daemon socket for the daemon commands (default: $ALIGND_SOCKET, "
+                        "else /run/alignd/alignd.sock)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub)

@@ -1,7 +1,344 @@
-"""alignctl subcommands (filled in by its issue)."""
+"""alignctl commands that talk to the daemon: status, align, check, abort, reset, history,
+report.
+
+Human output by default, ``--json`` for scripts (``align``/``check`` print the run-result
+JSON as the final stdout line). Live progress goes to stderr. Exit codes (contract):
+0 aligned / within tolerance, 1 out of tolerance / not converged / aborted, 2 usage, config
+or permission, 3 fault, busy or daemon unreachable. Only for ``--started-by timer``: 75
+(EX_TEMPFAIL) when the daemon refuses the run because it is busy, starting or faulted, so
+a scheduled check is reported as *skipped*, not failed (alignd-check.service accepts 75).
+"""
+
+from __future__ import annotations
 
 import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from alignd.client import ApiError, Client, DaemonUnreachable, resolve_socket
+from alignd.procedures.result import EXIT_CODES
+
+EXIT_OK, EXIT_OUT_OF_TOLERANCE, EXIT_USAGE, EXIT_FAULT = 0, 1, 2, 3
+EXIT_SKIPPED = 75  # EX_TEMPFAIL, --started-by timer only: busy/starting/faulted -> skipped
+VERDICT_EXIT = {**EXIT_CODES, "interrupted": EXIT_FAULT}  # interrupted: a record-only verdict
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # noqa: ARG001
+def exit_code(result: dict[str, Any] | None) -> int:
+    """The contract exit code for a run result."""
+    if not result:
+        return EXIT_FAULT
+    verdict = str(result.get("verdict"))
+    if verdict == "fault" and result.get("config_error"):
+        return EXIT_USAGE
+    return VERDICT_EXIT.get(verdict, EXIT_FAULT)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
     """Add this module's subcommands."""
+
+    def add(name: str, help_: str, func: Any) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.add_argument("--socket", default=argparse.SUPPRESS, metavar="PATH",
+                       help="daemon socket (default: $ALIGND_SOCKET, else "
+                       "/run/alignd/alignd.sock)")
+        p.add_argument("--json", action="store_true", help="machine-readable output")
+        p.set_defaults(func=func)
+        return p
+
+    add("status", "show the daemon's state and the progress of a run", cmd_status)
+    for kind, help_ in (("align", "align the sample onto the rotation axis (closed loop)"),
+                        ("check", "measure the offset without moving the sample")):
+        p = add(kind, help_, cmd_align if kind == "align" else cmd_check)
+        p.add_argument("--started-by", default="user", choices=["user", "timer"],
+                       help="recorded with the run; 'timer' also turns a refusal because "
+                       f"the daemon is busy or faulted into a skip (exit {EXIT_SKIPPED})")
+        p.add_argument("--detach", action="store_true",
+                       help="start the run and return at once (prints the run id)")
+        p.add_argument("--wait-ready", type=float, default=60.0, metavar="S",
+                       help="wait this long for a daemon still connecting its hardware "
+                       "(default %(default)s)")
+        p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+    add("abort", "abort the run in progress (all axes stop)", cmd_abort)
+    add("reset", "reconnect the hardware after a fault", cmd_reset)
+    p = add("history", "list recent runs", cmd_history)
+    p.add_argument("--limit", "-n", type=int, default=20, help="how many (default %(default)s)")
+    p = add("report", "write a run's report: PNG (top view, convergence) and JSON", cmd_report)
+    p.add_argument("run", type=int, metavar="RUN", help="run id (see alignctl history)")
+    p.add_argument("--out", default=".", metavar="DIR", help="output directory (default .)")
+
+
+def _client(args: argparse.Namespace) -> Client:
+    return Client(resolve_socket(getattr(args, "socket", None)))
+
+
+def _print_json(obj: Any) -> None:
+    print(json.dumps(obj, sort_keys=False), flush=True)
+
+
+def _fmt_offset(d: dict[str, Any]) -> str:
+    norm, u = d.get("offset_norm_um"), d.get("U_um")
+    if norm is None:
+        return "-"
+    return f"{norm:.1f} ± {u:.1f} um" if u is not None else f"{norm:.1f} um"
+
+
+# ---- status -----------------------------------------------------------------------------------
+def status_text(st: dict[str, Any]) -> str:
+    from alignd.daemon import status_line
+
+    lines = [f"alignd {st.get('version', '?')} '{st.get('name', '?')}' at "
+             f"{st.get('socket') or '?'}",
+             f"state: {status_line(st)}"]
+    last = st.get("last_run")
+    if last:
+        lines.append(f"last run: {last['id']} ({last['kind']}) {last['verdict']}"
+                     + (f": {last['reason']}" if last.get("reason") else ""))
+    for role, ident in sorted((st.get("devices") or {}).items()):
+        if isinstance(ident, dict):
+            lines.append(f"  {role:10s} {ident.get('vendor', '')} {ident.get('model', '')} "
+                         f"s/n {ident.get('serial', '?')} fw {ident.get('firmware', '?')}")
+    return "\n".join(lines)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    st = _client(args).status()
+    if args.json:
+        _print_json(st)
+    else:
+        print(status_text(st))
+    return EXIT_FAULT if st.get("state") == "fault" else EXIT_OK
+
+
+# ---- align / check ----------------------------------------------------------------------------
+def progress_text(ev: dict[str, Any]) -> str:
+    """One line of live progress for an event from ``GET /runs/ID/events``."""
+    kind = ev.get("type")
+    if kind == "progress":
+        parts = [f"[{ev.get('phase', '?')}]"]
+        if ev.get("iteration") is not None:
+            parts.append(f"iteration {ev['iteration']}")
+        if ev.get("step") is not None and ev.get("total") is not None:
+            parts.append(f"step {ev['step']}/{ev['total']}")
+        if ev.get("message"):
+            parts.append(str(ev["message"]))
+        if ev.get("offset_norm_um") is not None:
+            parts.append(f"offset {_fmt_offset(ev)}")
+        return " ".join(parts)
+    if kind == "end":
+        return f"[end] {ev.get('verdict')}" + (f": {ev['reason']}" if ev.get("reason") else "")
+    level = ev.get("level")
+    return f"[{level}] {ev.get('msg', '')}" if level and level != "info" else \
+        f"[note] {ev.get('msg', '')}"
+
+
+def result_text(result: dict[str, Any]) -> str:
+    lines = [f"run {result.get('run_id')}: {result.get('verdict')}"
+             + (f" ({result['reason']})" if result.get("reason") else "")]
+    if result.get("offset_um") is not None:
+        x, y = result["offset_um"]
+        lines.append(f"  offset     {_fmt_offset(result)} (k = 2)  [x {x:.1f}, y {y:.1f} um]")
+    lines.append(f"  iterations {result.get('iterations')}")
+    for key, label in (("tilt_deg", "tilt"), ("yaw_deg", "yaw")):
+        if result.get(key) is not None:
+            lines.append(f"  {label:10s} {result[key]:.3f} deg")
+    truth = result.get("truth")
+    if isinstance(truth, dict) and truth.get("offset_norm_um") is not None:
+        lines.append(f"  truth      {truth['offset_norm_um']:.1f} um (simulator, not used by "
+                     "the loop)")
+    return "\n".join(lines)
+
+
+class _ProgressPrinter:
+    """Progress on stderr: sweep steps overwrite one line on a terminal."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.tty = sys.stderr.isatty()
+        self._open = False
+
+    def __call__(self, ev: dict[str, Any]) -> None:
+        if self.quiet:
+            return
+        text = progress_text(ev)
+        stepping = ev.get("type") == "progress" and ev.get("step") is not None
+        if self.tty and stepping:
+            sys.stderr.write("\r\x1b[K" + text)
+            self._open = True
+        else:
+            if self._open:
+                sys.stderr.write("\n")
+                self._open = False
+            sys.stderr.write(text + "\n")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        if self._open and not self.quiet:
+            sys.stderr.write("\n")
+            self._open = False
+
+
+def _start(client: Client, kind: str, args: argparse.Namespace) -> tuple[int | None, int]:
+    """POST the run; returns (run_id, exit code if refused)."""
+    deadline = time.monotonic() + max(0.0, args.wait_ready)
+    timer = args.started_by == "timer"
+    while True:
+        try:
+            return int(client.start(kind, args.started_by)["run_id"]), EXIT_OK
+        except ApiError as exc:
+            if exc.code == "starting" and time.monotonic() < deadline:
+                time.sleep(0.5)
+                continue
+            if timer and exc.code in ("busy", "starting", "fault"):
+                print(f"alignctl: {kind} skipped: {exc}", file=sys.stderr)
+                return None, EXIT_SKIPPED
+            if exc.code == "forbidden":
+                print(f"alignctl: error: {exc}", file=sys.stderr)
+                return None, EXIT_USAGE
+            print(f"alignctl: error: {exc}", file=sys.stderr)
+            return None, EXIT_FAULT
+
+
+def follow(client: Client, run_id: int, on_event: Any, poll_s: float = 10.0
+           ) -> dict[str, Any] | None:
+    """Follow a run's live events until it ends; return its result. Ctrl-C once asks the
+    daemon to abort the run (and keeps following so the outcome is shown); twice detaches."""
+    after, aborted = 0, False
+    while True:
+        try:
+            reply = client.events(run_id, after=after, wait_s=poll_s)
+        except KeyboardInterrupt:
+            if aborted:
+                raise
+            aborted = True
+            print(f"\nalignctl: aborting run {run_id} (Ctrl-C again to detach)",
+                  file=sys.stderr)
+            try:
+                client.abort()
+            except (ApiError, DaemonUnreachable) as exc:
+                print(f"alignctl: abort failed: {exc}", file=sys.stderr)
+            continue
+        for ev in reply.get("events", []):
+            on_event(ev)
+        after = int(reply.get("next", after))
+        if reply.get("done"):
+            return reply.get("result")
+
+
+def _run_cmd(args: argparse.Namespace, kind: str) -> int:
+    client = _client(args)
+    run_id, code = _start(client, kind, args)
+    if run_id is None:
+        return code
+    if args.detach:
+        if args.json:
+            _print_json({"run_id": run_id, "kind": kind})
+        else:
+            print(f"run {run_id} ({kind}) started")
+        return EXIT_OK
+    printer = _ProgressPrinter(args.quiet)
+    try:
+        result = follow(client, run_id, printer)
+    except DaemonUnreachable as exc:
+        printer.close()
+        print(f"alignctl: lost contact with alignd during run {run_id}: {exc}",
+              file=sys.stderr)
+        return EXIT_FAULT
+    finally:
+        printer.close()
+    if result is None:
+        print(f"alignctl: run {run_id} ended without a result (interrupted?); see "
+              f"'alignctl history'", file=sys.stderr)
+        return EXIT_FAULT
+    if args.json:
+        _print_json(result)
+    else:
+        print(result_text(result))
+    return exit_code(result)
+
+
+def cmd_align(args: argparse.Namespace) -> int:
+    return _run_cmd(args, "align")
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    return _run_cmd(args, "check")
+
+
+# ---- abort / reset ---------------------------------------------------------------------------
+def _control(args: argparse.Namespace, what: str) -> int:
+    client = _client(args)
+    try:
+        reply = client.abort() if what == "abort" else client.reset()
+    except ApiError as exc:
+        print(f"alignctl: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE if exc.code == "forbidden" else EXIT_FAULT
+    if args.json:
+        _print_json(reply)
+    else:
+        print(reply.get("message", "ok"))
+    return EXIT_OK
+
+
+def cmd_abort(args: argparse.Namespace) -> int:
+    return _control(args, "abort")
+
+
+def cmd_reset(args: argparse.Namespace) -> int:
+    return _control(args, "reset")
+
+
+# ---- history / report ------------------------------------------------------------------------
+def history_table(runs: list[dict[str, Any]]) -> str:
+    head = f"{'ID':>5}  {'KIND':5}  {'STARTED (UTC)':19}  {'BY':16}  {'VERDICT':16}  " \
+           f"{'OFFSET (k=2)':20}  REASON"
+    rows = [head]
+    for r in runs:
+        started = str(r.get("started_at") or "")[:19].replace("T", " ")
+        by = f"{r.get('user') or '?'}/{r.get('started_by')}"
+        verdict = r.get("verdict") or r.get("status") or "?"
+        rows.append(f"{r['id']:>5}  {r['kind']:5}  {started:19}  {by[:16]:16}  "
+                    f"{verdict:16}  {_fmt_offset(r):20}  {r.get('reason') or ''}")
+    return "\n".join(rows)
+
+
+def cmd_history(args: argparse.Namespace) -> int:
+    if args.limit < 1:
+        print("alignctl: error: --limit must be at least 1", file=sys.stderr)
+        return EXIT_USAGE
+    runs = _client(args).history(args.limit)
+    if args.json:
+        _print_json(runs)
+    elif not runs:
+        print("no runs recorded yet")
+    else:
+        print(history_table(runs))
+    return EXIT_OK
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from alignd import report
+
+    client = _client(args)
+    try:
+        run = client.run(args.run)
+    except ApiError as exc:
+        print(f"alignctl: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE if exc.status in (400, 404) else EXIT_FAULT
+    image = None
+    pick = report.pick_frame(run)
+    if pick is not None:
+        try:
+            image = report.decode_png(client.frame(pick["hash"]))
+        except ApiError as exc:
+            print(f"alignctl: warning: frame {pick['hash'][:12]} unavailable: {exc}",
+                  file=sys.stderr)
+    paths = report.write_report(run, Path(args.out), image)
+    if args.json:
+        _print_json({k: str(v) for k, v in paths.items()})
+    else:
+        for kind, path in paths.items():
+            print(f"{kind}: {path}")
+    return EXIT_OK

@@ -1,0 +1,209 @@
+"""Stand-ins for the hardware and the procedures, for the daemon/API/store tests.
+
+The daemon only needs a rig with ``identities``, ``stop_all()``, ``close()`` and ``truth``,
+and procedures with the signature ``(rig, cfg, *, progress, abort, recorder) -> result``.
+These fakes record what the daemon did to them (stops, closes) so tests can assert it.
+Also used by ``run_fake_daemon`` in a subprocess (SIGTERM/SIGKILL tests).
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from alignd.api import ApiServer, Authoriser
+from alignd.client import Client
+from alignd.config import load_config
+from alignd.daemon import Daemon
+from alignd.procedures.events import ProgressEvent
+from alignd.store import Store
+from drivers.axis import Identity
+
+SIM_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sim.yaml"
+
+
+@dataclass
+class FakeAxis:
+    pos: float = 12.5
+    broken: bool = False
+
+    def position(self) -> float:
+        if self.broken:
+            raise OSError("port vanished")
+        return self.pos
+
+
+@dataclass
+class FakeRig:
+    identities: dict[str, Identity] = field(default_factory=lambda: {
+        "turntable": Identity("Newport", "SMC100", "FAKE1", "1.0", "URS75BCC"),
+        "x": Identity("Zaber", "X-LSM050A", "FAKE2", "7.0")})
+    axes: dict[str, FakeAxis] = field(default_factory=lambda: {
+        "turntable": FakeAxis(-3.25), "x": FakeAxis(25.0, broken=True)})
+    stops: int = 0
+    closed: bool = False
+    fail_stop: bool = False
+
+    def stop_all(self) -> list[str]:
+        self.stops += 1
+        return ["x: stop failed (fake)"] if self.fail_stop else []
+
+    def close(self) -> None:
+        self.closed = True
+
+    def truth(self) -> dict[str, Any]:
+        return {"offset_um": [1.0, -2.0], "offset_norm_um": 2.236}
+
+
+@dataclass
+class FakeResult:
+    verdict: str
+    offset_um: tuple[float, float]
+    U_um: float
+    iterations: int
+    reason: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"verdict": self.verdict, "offset_um": list(self.offset_um),
+                "offset_norm_um": float(np.hypot(*self.offset_um)), "U_um": self.U_um,
+                "iterations": self.iterations, "tilt_deg": 0.01, "yaw_deg": 1.5,
+                "reason": self.reason}
+
+
+def make_procedure(verdict: str = "aligned", *, steps: int = 5, iterations: int = 2,
+                   gate: threading.Event | None = None, raise_exc: Exception | None = None,
+                   step_sleep_s: float = 0.0) -> Any:
+    """A procedure that reports progress, records a sweep, iteration, frame and event each
+    iteration, optionally blocks on ``gate`` (until set or aborted), then returns."""
+
+    def proc(rig: Any, cfg: Any, *, progress: Any, abort: threading.Event,
+             recorder: Any) -> FakeResult:
+        offsets = [(800.0 / 4**i, -300.0 / 4**i) for i in range(iterations + 1)]
+        for it in range(iterations):
+            angles = np.linspace(-10, 10, steps)
+            frames = []
+            hashes = []
+            for k, a in enumerate(angles):
+                if abort.is_set():
+                    return FakeResult("aborted", offsets[it], 5.0, it,
+                                      getattr(abort, "reason", None) or "abort")
+                progress(ProgressEvent("sweep", "frame", step=k + 1, total=steps,
+                                       iteration=it + 1))
+                frames.append({"angle_deg": float(a),
+                               "features": [[60.0 + k, 30.0], [70.0 + k, 30.0], None,
+                                            [60.0 + k, 40.0]]})
+                # a frame per step, labelled as the procedures do; a bar marks step/iteration
+                img = np.zeros((72, 128), np.uint8)
+                img[10 + k, 10 + 20 * it:20 + 20 * it] = 255
+                hashes.append(recorder.frame(img, f"measure-{it + 1}-{k:03d}-0"))
+                if step_sleep_s:
+                    time.sleep(step_sleep_s)
+            recorder.sweep("measure", it + 1, {"version": 1, "pixel_size_um": 160.0,
+                                               "frames": frames},
+                           list(angles), list(angles + 0.001))
+            recorder.iteration(it + 1, {"offset_um": offsets[it], "U_um": 5.0,
+                                        "centre_px": [64.0, 36.0],
+                                        "cov_centre_px2": [[0.04, 0.0], [0.0, 0.09]],
+                                        "offset_px": [-4.0, -6.0], "frame": hashes[0]})
+            recorder.event(f"iteration {it + 1} done")
+            progress(ProgressEvent("move", "correcting", iteration=it + 1,
+                                   offset_um=offsets[it],
+                                   offset_norm_um=float(np.hypot(*offsets[it])), U_um=5.0))
+            if gate is not None:
+                while not gate.wait(0.01):
+                    if abort.is_set():
+                        return FakeResult("aborted", offsets[it], 5.0, it + 1,
+                                          getattr(abort, "reason", None) or "abort")
+            if raise_exc is not None:
+                raise raise_exc
+        return FakeResult(verdict, offsets[-1], 5.0, iterations,
+                          "" if verdict in ("aligned", "within_tolerance") else verdict)
+
+    return proc
+
+
+@dataclass
+class Env:
+    daemon: Daemon
+    server: ApiServer
+    client: Client
+    rig: FakeRig
+    store: Store
+    sock: str
+    gate: threading.Event
+
+
+def short_tmp() -> Path:
+    d = Path(tempfile.mkdtemp(prefix="ad-", dir="/tmp"))  # AF_UNIX paths are short
+    d.chmod(0o755)
+    return d
+
+
+def make_env(procs: dict[str, Any] | None = None, *, rig_factory: Any = None,
+             authoriser: Authoriser | None = None, **server_kw: Any) -> Iterator[Env]:
+    tmp = short_tmp()
+    cfg = load_config(SIM_CONFIG)
+    store = Store(tmp / "state").open()
+    gate = threading.Event()
+    rig = FakeRig()
+    procs = procs or {"align": make_procedure("aligned", gate=gate),
+                      "check": make_procedure("within_tolerance", gate=gate)}
+    daemon = Daemon(cfg, store, rig_factory or (lambda: rig), procedures=procs,
+                    socket_path=str(tmp / "s.sock"), stop_timeout_s=5.0)
+    server = ApiServer(tmp / "s.sock", daemon, authoriser or Authoriser(None), **server_kw)
+    server.start()
+    daemon.start()
+    env = Env(daemon, server, Client(tmp / "s.sock", timeout_s=5.0), rig, store,
+              str(tmp / "s.sock"), gate)
+    try:
+        yield env
+    finally:
+        gate.set()
+        daemon.stop()
+        server.stop()
+        store.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def wait_until(pred: Any, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not reached in time")
+        time.sleep(0.01)
+
+
+def follow(client: Client, run_id: int) -> dict[str, Any]:
+    after, events = 0, []
+    while True:
+        r = client.events(run_id, after=after, wait_s=2.0)
+        events += r["events"]
+        after = r["next"]
+        if r["done"]:
+            return {**r, "events": events}
+
+
+def run_fake_daemon(argv: list[str], mode: str) -> int:
+    """Entry for the subprocess tests: the real ``alignd`` main with a fake rig.
+
+    mode ``block``: runs block until aborted (SIGTERM/SIGKILL tests); ``quick``: finish.
+    """
+    from alignd.daemon import main
+
+    gate = None if mode == "quick" else threading.Event()
+    procs = {"align": make_procedure("aligned", gate=gate),
+             "check": make_procedure("within_tolerance", gate=gate)}
+    return main(argv, rig_factory=FakeRig, procedures=procs)
+
+
+if __name__ == "__main__":
+    sys.exit(run_fake_daemon(sys.argv[2:], sys.argv[1]))
