@@ -1,7 +1,207 @@
-"""alignctl subcommands (filled in by its issue)."""
+"""``alignctl analyze top|side|rim IMAGE...``: measure camera frames offline.
+
+- ``top``: the holder's corners and pose (centre, angle) and a quality figure per image;
+  with ``--sweep-out FILE`` the series becomes a sweep file for ``alignctl solve`` (angles
+  from ``--angles`` or from the file names, e.g. ``sweep_-10.0deg.png``).
+- ``side``: the sample-edge angle, the pole angle and the tilt between them.
+- ``rim``: the turntable rim's ellipse, its eccentricity and the camera zenith it implies.
+
+Each image is analysed on its own: an unreadable image or one without a target is
+reported (stderr, and an ``{"file", "error"}`` line with ``--json``), the others are still
+analysed, and the exit code is then 2.
+"""
+
+from __future__ import annotations
 
 import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from alignd.errors import InputError, VisionError
+
+_ANGLE_RE = re.compile(r"(?<![\d.])([-+]?\d+(?:\.\d+)?)\s*deg", re.IGNORECASE)
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # noqa: ARG001
-    """Add this module's subcommands."""
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``analyze``."""
+    p = sub.add_parser("analyze", help="measure top / side / rim camera images offline",
+                       description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("kind", choices=["top", "side", "rim"], help="what the images show")
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="image file(s): PNG, JPEG, TIFF...")
+    p.add_argument("--json", action="store_true",
+                   help="one JSON object per line per image (the analyze-output contract)")
+    g = p.add_argument_group("top")
+    g.add_argument("--expected-size", metavar="L,S", type=_pair,
+                   help="holder's long and short side in px (rejects other blobs)")
+    g.add_argument("--polarity", choices=["dark", "light"],
+                   help="holder darker or lighter than its surroundings (default: either)")
+    g.add_argument("--sweep-out", metavar="FILE", help="write the series as a sweep file")
+    g.add_argument("--angles", metavar="A,B,...", type=_floats,
+                   help="turntable angle (deg) of each image, in order (else from file names)")
+    g.add_argument("--pixel-size-um", type=float, help="pixel size for the sweep file")
+    g.add_argument("--k1", type=float, default=0.0,
+                   help="radial distortion (OpenCV k1); needs --focal-px and --principal")
+    g.add_argument("--focal-px", type=float, help="focal length in px (with --k1)")
+    g.add_argument("--principal", metavar="X,Y", type=_pair,
+                   help="principal point in px (with --k1; default: the image centre)")
+    g = p.add_argument_group("side")
+    g.add_argument("--pole-x", type=float, help="approximate x (px) of the reference pole")
+    g.add_argument("--sample-x", type=float, help="approximate x (px) of the sample edge")
+    g = p.add_argument_group("rim")
+    g.add_argument("--radius-mm", type=float, default=150.0, help="rim radius (default 150)")
+    g.add_argument("--height-mm", type=float, default=800.0,
+                   help="camera height above the turntable (default 800)")
+    p.set_defaults(func=run)
+
+
+def _pair(text: str) -> tuple[float, float]:
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two numbers 'L,S', got {text!r}") from None
+    return a, b
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}"
+                                         ) from None
+
+
+def read_image(name: str) -> np.ndarray:
+    """Grey image as float-compatible uint8 (16-bit scaled); InputError if unreadable."""
+    if not Path(name).is_file():
+        raise InputError(f"{name}: no such image file")
+    img = cv2.imread(name, cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise InputError(f"{name}: cannot read image (not an image format OpenCV decodes)")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img[:, :, :3], cv2.COLOR_BGR2GRAY)
+    if img.dtype == np.uint16:
+        img = (img.astype(np.float32) / 257.0)
+    elif img.dtype != np.uint8:
+        img = img.astype(np.float32)
+    return img
+
+
+def _angle_from_name(name: str) -> float | None:
+    m = _ANGLE_RE.findall(Path(name).stem)
+    return float(m[-1]) if m else None
+
+
+def _fmt(v: float, nd: int = 3) -> str:
+    return f"{v:.{nd}f}" if math.isfinite(v) else "nan"
+
+
+def _analyze_one(kind: str, name: str, args: argparse.Namespace,
+                 prev: np.ndarray | None) -> tuple[dict[str, object], str, np.ndarray | None]:
+    """JSON object, human line, and (top) the corners for the sweep; raises on failure."""
+    img = read_image(name)
+    if kind == "top":
+        from alignd.vision.holder import order_corners, track_holder
+        from alignd.vision.lens import Lens
+        lens = None
+        if args.k1:
+            if args.focal_px is None:
+                raise InputError("--k1 needs --focal-px")
+            pp = args.principal or ((img.shape[1] - 1) / 2, (img.shape[0] - 1) / 2)
+            lens = Lens(args.focal_px, pp, args.k1)
+        det = track_holder(img, expected_size_px=args.expected_size, polarity=args.polarity,
+                           lens=lens)
+        if not det.ok:
+            raise VisionError(f"holder not measured: {det.reason or 'quality checks failed'}")
+        corners = order_corners(det.corners_px, prev) if prev is not None else det.corners_px
+        obj = det.to_json()
+        obj["corners_px"] = [[float(x), float(y)] for x, y in corners]
+        line = (f"centre ({_fmt(det.center_px[0])}, {_fmt(det.center_px[1])}) px  angle "
+                f"{det.angle_deg:+.4f} deg  quality {det.quality:.3f}  corner sigma "
+                f"{det.corner_sigma_px:.4f} px  corners "
+                + " ".join(f"({x:.3f}, {y:.3f})" for x, y in corners))
+        return obj, line, corners
+    if kind == "side":
+        from alignd.vision.side import measure_tilt
+        m = measure_tilt(img, pole_x_px=args.pole_x, sample_x_px=args.sample_x)
+        line = (f"sample {m.sample_angle_deg:+.4f} deg  pole {m.pole_angle_deg:+.4f} deg  "
+                f"tilt {m.tilt_deg:+.4f} +- {m.sigma_deg:.4f} deg")
+        return m.to_json(), line, None
+    from alignd.vision.rim import fit_rim
+    f = fit_rim(img, args.radius_mm, args.height_mm)
+    line = (f"ellipse centre ({f.center_px[0]:.3f}, {f.center_px[1]:.3f}) px  axes "
+            f"{f.axes_px[0]:.3f} x {f.axes_px[1]:.3f} px  angle {f.angle_deg:+.2f} deg  "
+            f"e {f.eccentricity:.4f}  camera zenith {_fmt(f.camera_zenith_deg, 3)} deg")
+    return f.to_json(), line, None
+
+
+def run(args: argparse.Namespace) -> int:
+    from alignd.cli import EXIT_OK, EXIT_USAGE
+
+    if args.kind != "top" and (args.sweep_out or args.angles):
+        raise InputError("--sweep-out/--angles apply to 'analyze top' only")
+    angles: list[float] | None = None
+    if args.sweep_out:
+        if args.angles is not None:
+            if len(args.angles) != len(args.images):
+                raise InputError(f"--angles has {len(args.angles)} values for "
+                                 f"{len(args.images)} images")
+            angles = list(args.angles)
+        else:
+            found = [_angle_from_name(n) for n in args.images]
+            missing = [n for n, a in zip(args.images, found, strict=True) if a is None]
+            if missing:
+                raise InputError(f"no turntable angle for {missing[0]} (name it like "
+                                 "'frame_-10.0deg.png' or give --angles)")
+            angles = [float(a) for a in found if a is not None]
+    status = EXIT_OK
+    prev: np.ndarray | None = None
+    features: list[np.ndarray] = []
+    for name in args.images:
+        try:
+            obj, line, corners = _analyze_one(args.kind, name, args, prev)
+        except (InputError, VisionError) as exc:
+            msg = str(exc) if str(exc).startswith(name) else f"{name}: {exc}"
+            print(f"alignctl analyze: error: {msg}", file=sys.stderr)
+            if args.json:
+                print(json.dumps({"file": name, "error": msg}), flush=True)
+            status = EXIT_USAGE
+            features.append(np.full((4, 2), np.nan))
+            continue
+        if corners is not None:
+            prev = corners
+            features.append(np.asarray(corners, float))
+        if args.json:
+            print(json.dumps({"file": name, **obj}), flush=True)
+        else:
+            print(f"{name}: {line}", flush=True)
+    if args.sweep_out and angles is not None:
+        _write_sweep(args.sweep_out, angles, features, args.pixel_size_um)
+    return status
+
+
+def _write_sweep(path: str, angles: list[float], features: list[np.ndarray],
+                 pixel_size_um: float | None) -> None:
+    """The sweep-file contract (version 1); a missed image's corners are null."""
+    pts = np.asarray(features, float).reshape(len(features), 4, 2)
+    if not np.isfinite(pts).any():
+        raise InputError(f"{path}: not written, the holder was found in no image")
+    try:
+        from alignd.solve.sweep import Sweep, sweep_to_json
+        obj = sweep_to_json(Sweep(angles_deg=np.asarray(angles, float), points=pts,
+                                  pixel_size_um=pixel_size_um))
+    except ImportError:  # the solver package is optional for this command
+        obj = {"version": 1, "pixel_size_um": pixel_size_um,
+               "frames": [{"angle_deg": float(a), "features": [
+                   [float(p[0]), float(p[1])] if np.all(np.isfinite(p)) else None for p in fr]}
+                   for a, fr in zip(angles, pts, strict=True)]}
+    try:
+        Path(path).write_text(json.dumps(obj, indent=1) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot write sweep file: {exc.strerror or exc}") from exc

@@ -1,0 +1,44 @@
+"""alignd's vision: pure functions from camera frames to measurements (no I/O, no state).
+
+- :func:`track_holder` (top camera): holder corners, pose and quality per frame;
+  :func:`measure_yaw`: the sample face's yaw from the turntable zero direction.
+- :func:`measure_tilt` (side camera): sample and pole angles and the tilt between them;
+  :func:`baseline_tilt`: the thesis' Canny + Hough method, for comparison.
+- :func:`fit_rim`: turntable rim ellipse, eccentricity and camera zenith (eq. 3.7);
+  :class:`PlaneRectifier`: image points rectified to the turntable plane.
+- :mod:`alignd.vision.overlay`: report drawings.
+"""
+
+from alignd.vision.holder import (
+    HolderDetection,
+    YawMeasurement,
+    measure_yaw,
+    order_corners,
+    track_holder,
+)
+from alignd.vision.rim import (
+    PlaneRectifier,
+    RimFit,
+    camera_zenith_from_eccentricity,
+    eccentricity_from_zenith,
+    fit_rim,
+    zenith_from_ellipse,
+)
+from alignd.vision.side import SideMeasurement, baseline_tilt, measure_tilt
+
+__all__ = [
+    "HolderDetection",
+    "PlaneRectifier",
+    "RimFit",
+    "SideMeasurement",
+    "YawMeasurement",
+    "baseline_tilt",
+    "camera_zenith_from_eccentricity",
+    "eccentricity_from_zenith",
+    "fit_rim",
+    "measure_tilt",
+    "measure_yaw",
+    "order_corners",
+    "track_holder",
+    "zenith_from_ellipse",
+]

@@ -1,0 +1,332 @@
+"""Sub-pixel straight-edge measurement shared by the holder, side-camera and rim analysis.
+
+The edge locator is the *area method*: along a pixel column (or row) crossing an edge, the
+sum of the normalised intensities ``(P_j - E) / (S - E)`` (S, E the levels at the start and
+the end of the window) equals the distance from the window start to the edge crossing. For
+the pixel-area (box) sampling of a camera, and any symmetric blur, this is exact for a
+straight edge at any angle, so it has none of the "pixel locking" bias of gradient-peak or
+centroid interpolation. The levels are estimated from the window tails, smoothed along the
+edge (so a lighting gradient or a soft shadow crossing the edge is followed) and extrapolated
+across the window with the edge's mean illumination slope.
+
+Columns are used for edges within 45 deg of horizontal, rows otherwise; errors are then in
+one image coordinate only, so the line fit is an ordinary least-squares fit of that
+coordinate, with iterative rejection of outlying columns (specks, shadow boundaries).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from alignd.errors import VisionError
+
+__all__ = ["EdgePoints", "Line", "area_crossings", "as_gray", "check_usable", "coarse_edge",
+           "edge_points", "fit_line", "intersect"]
+
+
+def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
+    """A 2-D float32 copy of ``image`` (BGR/BGRA converted to grey)."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if img.ndim != 2 or img.shape[0] < 16 or img.shape[1] < 16:
+        raise VisionError(f"{what}: expected a 2-D (grey) or BGR image of at least 16 x 16 px, "
+                          f"got shape {np.asarray(image).shape}")
+    return img.astype(np.float32)
+
+
+def check_usable(gray: np.ndarray, min_contrast: float, what: str = "image",
+                 full_scale: float = 255.0) -> None:
+    """Raise VisionError for a blank (featureless) or mostly saturated image."""
+    lo, hi = np.percentile(gray[::4, ::4], [1, 99])
+    if hi - lo < min_contrast:
+        raise VisionError(f"{what}: blank image (1-99 % intensity range {hi - lo:.1f} DN "
+                          f"< {min_contrast:.0f} DN); no target can be found")
+    sat = float(np.mean(gray[::4, ::4] >= full_scale - 0.5))
+    if sat > 0.5:
+        raise VisionError(f"{what}: {100 * sat:.0f} % of the image is saturated; "
+                          "reduce exposure or light")
+
+
+@dataclass(frozen=True)
+class Line:
+    """A line n . p = d (n unit normal) with its fit statistics."""
+
+    n: np.ndarray
+    d: float
+    rms_px: float
+    n_points: int
+    n_used: int
+    cov_ab: np.ndarray  # covariance of (a, b) of minor = a + b * major
+    vertical: bool  # True: fitted as x = a + b y (rows); False: y = a + b x (columns)
+    major_span: tuple[float, float]
+    contrast: float  # median end-minus-start level across the edge (signed)
+
+    def minor_sigma_at(self, major: float) -> float:
+        """Standard error of the line's minor coordinate at ``major``."""
+        v = np.array([1.0, major])
+        return float(math.sqrt(max(v @ self.cov_ab @ v, 0.0)))
+
+    def point_sigma(self, p: np.ndarray) -> float:
+        """Standard error of the line position (normal direction) near point p."""
+        major = float(p[1] if self.vertical else p[0])
+        return self.minor_sigma_at(major) * abs(self.n[0] if self.vertical else self.n[1])
+
+    @property
+    def angle_deg(self) -> float:
+        """Direction of the line (deg, x toward y), in (-90, 90]."""
+        a = math.degrees(math.atan2(self.n[0], -self.n[1]))
+        return (a + 90.0) % 180.0 - 90.0
+
+    def minor_at(self, major: np.ndarray | float) -> np.ndarray:
+        if self.vertical:  # n0 x + n1 y = d -> x = (d - n1 y) / n0
+            return (self.d - self.n[1] * np.asarray(major, float)) / self.n[0]
+        return (self.d - self.n[0] * np.asarray(major, float)) / self.n[1]
+
+
+@dataclass(frozen=True)
+class EdgePoints:
+    """Sub-pixel crossings of an edge, one per column (or row)."""
+
+    xy: np.ndarray  # (N, 2)
+    contrast: np.ndarray  # (N,) end level minus start level (DN), signed
+    vertical: bool
+
+
+def _moving_mean(v: np.ndarray, k: int) -> np.ndarray:
+    if v.size == 0 or k <= 0:
+        return v
+    ker = np.ones(2 * k + 1)
+    num = np.convolve(v, ker, mode="same")
+    den = np.convolve(np.ones_like(v), ker, mode="same")
+    return num / den
+
+
+def _median(v: np.ndarray) -> float:
+    """Median of a 1-D array (the upper one for even sizes), without np.median's overhead."""
+    v = np.asarray(v).ravel()
+    if v.size == 0:
+        return math.nan
+    k = v.size // 2
+    return float(np.partition(v, k)[k])
+
+
+def _adaptive_slope(v: np.ndarray, k: int) -> np.ndarray:
+    """Per-column slope: the edge's robust mean, replaced by the local (moving) mean only
+    where that differs from it by more than 4 of its own standard errors."""
+    g = _robust_mean(v)
+    if v.size < 3 or k <= 0:
+        return np.full(v.shape, g)
+    loc = _moving_mean(v, k)
+    sig = float(_median(np.abs(v - _median(v)))) * 1.4826 / math.sqrt(2 * k + 1)
+    return np.where(np.abs(loc - g) > 4 * sig + 1e-9, loc, g)
+
+
+def _robust_mean(v: np.ndarray) -> float:
+    """Mean of v without its outliers (beyond 4 robust sigma of the median)."""
+    if v.size == 0:
+        return 0.0
+    med = float(_median(v))
+    sig = float(_median(np.abs(v - med))) * 1.4826 + 1e-9
+    keep = np.abs(v - med) <= 4 * sig
+    return float(v[keep].mean()) if keep.any() else med
+
+
+def edge_points(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, half_width: int = 5,
+                margin_px: float = 8.0, tails: int = 3, smooth: int = 3,
+                min_contrast: float = 10.0, vertical: bool | None = None) -> EdgePoints:
+    """Measure the edge near the segment p0-p1 in every column (or row) it crosses.
+
+    Windows of 2 * half_width + 1 px are centred on the predicted crossing; the segment's
+    ends are trimmed by ``margin_px`` (corners, neighbouring edges). Crossings with a level
+    difference under ``min_contrast`` or outside the window's middle are dropped.
+    """
+    p0 = np.asarray(p0, float)
+    p1 = np.asarray(p1, float)
+    dx, dy = p1 - p0
+    if vertical is None:
+        vertical = abs(dy) > abs(dx)
+    h, w = gray.shape
+    if vertical:  # rows: major = y, minor = x
+        ma0, ma1, mi0, mi1, limit_major = p0[1], p1[1], p0[0], p1[0], h
+    else:
+        ma0, ma1, mi0, mi1, limit_major = p0[0], p1[0], p0[1], p1[1], w
+    if ma1 < ma0:
+        ma0, ma1, mi0, mi1 = ma1, ma0, mi1, mi0
+    length = math.hypot(dx, dy)
+    trim = margin_px * abs(ma1 - ma0) / max(length, 1e-9)
+    t = np.arange(math.ceil(ma0 + trim), math.floor(ma1 - trim) + 1)
+    t = t[(t >= 0) & (t < limit_major)]
+    empty = EdgePoints(np.empty((0, 2)), np.empty(0), vertical)
+    if t.size < 3 or ma1 - ma0 < 1e-9:
+        return empty
+    c = mi0 + (t - ma0) * (mi1 - mi0) / (ma1 - ma0)
+    return area_crossings(gray, t, c, vertical, half_width=half_width, tails=tails,
+                          smooth=smooth, min_contrast=min_contrast)
+
+
+def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: bool, *,
+                   half_width: int = 5, tails: int = 3, smooth: int = 3,
+                   min_contrast: float = 10.0) -> EdgePoints:
+    """Area-method crossings of an edge (straight or gently curved) predicted at minor
+    coordinate ``c`` in each column (row) ``t``; t must run along the edge."""
+    h, w = gray.shape
+    limit_minor = w if vertical else h
+    empty = EdgePoints(np.empty((0, 2)), np.empty(0), vertical)
+    t = np.asarray(t).astype(int)
+    c = np.asarray(c, float)
+    start = np.round(c).astype(int) - half_width
+    m = 2 * half_width + 1
+    ok = (start >= 0) & (start + m <= limit_minor)
+    t, c, start = t[ok], c[ok], start[ok]
+    if t.size < 3:
+        return empty
+    j = np.arange(m)
+    idx_minor = start[:, None] + j[None, :]
+    P = (gray[t[:, None], idx_minor] if vertical else gray[idx_minor, t[:, None]]).astype(
+        np.float64)
+    S = P[:, :tails].mean(axis=1)
+    E = P[:, -tails:].mean(axis=1)
+    S_s = _moving_mean(S, smooth)
+    E_s = _moving_mean(E, smooth)
+    js = (tails - 1) / 2
+    je = m - 1 - (tails - 1) / 2
+    if tails >= 2:
+        # the illumination slope across each side: one value per edge (its noise would
+        # otherwise tilt the line), except where a shadow's penumbra crosses the edge
+        wts = np.arange(tails) - js
+        wts = wts / float(wts @ wts)
+        slope_s = _adaptive_slope(P[:, :tails] @ wts, smooth)[:, None]
+        slope_e = _adaptive_slope(P[:, -tails:] @ wts, smooth)[:, None]
+    else:
+        slope_s = slope_e = np.zeros((P.shape[0], 1))
+    Sj = S_s[:, None] + slope_s * (j[None, :] - js)
+    Ej = E_s[:, None] + slope_e * (j[None, :] - je)
+    contrast = E_s - S_s
+    good = np.abs(contrast) >= min_contrast
+    # a column that clips a corner or a neighbouring edge shows a partial step
+    raw = E - S
+    if good.any():
+        med = float(_median(raw[good]))
+        good &= np.abs(raw - med) <= 0.2 * abs(med) + 3.0
+    denom = Sj - Ej
+    denom = np.where(good[:, None] & (np.abs(denom) > 1e-6), denom, 1.0)
+    frac = (P - Ej) / denom
+    pos = start - 0.5 + frac.sum(axis=1)
+    rel = pos - start
+    good &= (rel > tails) & (rel < m - 1 - tails)
+    # the profile must be a single step: no sample far outside the level range
+    lo = np.minimum(Sj, Ej) - 0.35 * np.abs(contrast)[:, None]
+    hi = np.maximum(Sj, Ej) + 0.35 * np.abs(contrast)[:, None]
+    good &= np.all((lo < P) & (hi > P), axis=1)
+    t, pos, contrast = t[good], pos[good], contrast[good]
+    xy = np.column_stack([pos, t]) if vertical else np.column_stack([t, pos])
+    return EdgePoints(xy.astype(float), contrast, vertical)
+
+
+def coarse_edge(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, search_px: int = 10,
+                margin_px: float = 12.0, min_step: float = 10.0) -> Line | None:
+    """Locate an edge within +-search_px of the segment p0-p1 to about a pixel: the
+    strongest step of each column (row), then a robust line. Seeds :func:`edge_points`."""
+    p0 = np.asarray(p0, float)
+    p1 = np.asarray(p1, float)
+    dx, dy = p1 - p0
+    vertical = abs(dy) > abs(dx)
+    h, w = gray.shape
+    if vertical:
+        ma0, ma1, mi0, mi1, lim_ma, lim_mi = p0[1], p1[1], p0[0], p1[0], h, w
+    else:
+        ma0, ma1, mi0, mi1, lim_ma, lim_mi = p0[0], p1[0], p0[1], p1[1], w, h
+    if ma1 < ma0:
+        ma0, ma1, mi0, mi1 = ma1, ma0, mi1, mi0
+    if ma1 - ma0 < 1e-9:
+        return None
+    trim = margin_px * abs(ma1 - ma0) / max(math.hypot(dx, dy), 1e-9)
+    t = np.arange(math.ceil(ma0 + trim), math.floor(ma1 - trim) + 1)
+    t = t[(t >= 0) & (t < lim_ma)]
+    c = mi0 + (t - ma0) * (mi1 - mi0) / (ma1 - ma0)
+    start = np.round(c).astype(int) - search_px
+    m = 2 * search_px + 1
+    ok = (start >= 0) & (start + m <= lim_mi)
+    t, start = t[ok], start[ok]
+    if t.size < 8:
+        return None
+    idx = start[:, None] + np.arange(m)[None, :]
+    P = (gray[t[:, None], idx] if vertical else gray[idx, t[:, None]]).astype(np.float32)
+    P = (P[:, :-2] + P[:, 1:-1] + P[:, 2:]) / 3  # a little smoothing against noise
+    D = np.diff(P, axis=1)
+    # one sign for the whole edge: the dominant one
+    sign = 1.0 if _median(D.max(axis=1)) >= _median(-D.min(axis=1)) else -1.0
+    k = np.argmax(sign * D, axis=1)
+    step = sign * D[np.arange(D.shape[0]), k]
+    keep = step * 3 >= min_step
+    pos = start + k + 1.5
+    xy = np.column_stack([pos, t]) if vertical else np.column_stack([t, pos])
+    pts = EdgePoints(xy[keep].astype(float), step[keep], vertical)
+    return fit_line(pts, reject_sigma=3.0, min_points=8, min_sigma=0.7)
+
+
+def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
+             iterations: int = 4, min_sigma: float = 0.01) -> Line | None:
+    """Least-squares line minor = a + b * major with iterative robust rejection."""
+    if pts.xy.shape[0] < min_points:
+        return None
+    if pts.vertical:
+        major, minor = pts.xy[:, 1], pts.xy[:, 0]
+    else:
+        major, minor = pts.xy[:, 0], pts.xy[:, 1]
+    m0 = float(major.mean())
+    use = np.ones(major.size, bool)
+    coef = np.zeros(2)
+    res = np.zeros_like(minor)
+    u = major - m0
+    for _ in range(iterations):
+        nu = int(use.sum())
+        if nu < min_points:
+            return None
+        uu, vv = u[use], minor[use]
+        um, vm = uu.mean(), vv.mean()
+        du = uu - um
+        b = float(du @ (vv - vm)) / max(float(du @ du), 1e-12)
+        coef = np.array([vm - b * um, b])
+        res = minor - (coef[0] + coef[1] * u)
+        ru = res[use]
+        mad = float(_median(np.abs(ru - _median(ru)))) * 1.4826
+        sig = max(mad, min_sigma)
+        new = np.abs(res) < reject_sigma * sig
+        if np.array_equal(new, use):
+            break
+        use = new
+    if use.sum() < min_points:
+        return None
+    r = res[use]
+    dof = max(int(use.sum()) - 2, 1)
+    s2 = float(r @ r) / dof
+    A = np.column_stack([np.ones(use.sum()), major[use] - m0])
+    cov_c = s2 * np.linalg.inv(A.T @ A)
+    # back to a + b * major (un-centred)
+    T = np.array([[1.0, -m0], [0.0, 1.0]])
+    cov_ab = T @ cov_c @ T.T
+    a = coef[0] - coef[1] * m0
+    b = coef[1]
+    # minor - b * major - a = 0
+    # vertical: x - b y = a; else: y - b x = a
+    nv = np.array([1.0, -b]) if pts.vertical else np.array([-b, 1.0])
+    norm = float(np.hypot(*nv))
+    return Line(n=nv / norm, d=float(a / norm), rms_px=float(math.sqrt(s2)),
+                n_points=int(major.size), n_used=int(use.sum()), cov_ab=cov_ab,
+                vertical=pts.vertical, major_span=(float(major.min()), float(major.max())),
+                contrast=float(_median(pts.contrast)))
+
+
+def intersect(l1: Line, l2: Line) -> np.ndarray:
+    """Intersection point of two lines (NaN when parallel)."""
+    A = np.array([l1.n, l2.n])
+    det = float(np.linalg.det(A))
+    if abs(det) < 1e-9:
+        return np.array([np.nan, np.nan])
+    return np.linalg.solve(A, np.array([l1.d, l2.d]))

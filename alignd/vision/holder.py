@@ -1,0 +1,446 @@
+"""Sample-holder tracking in the top camera: corners and pose per frame, sub-pixel.
+
+Coarse: the holder is the most rectangular blob (either polarity) over a ladder of
+thresholds (Otsu's and fixed steps, so shadows and extra grey levels cannot hide it) of a
+4x-downsampled frame, kept only where the threshold cuts its edge near half height; the
+strongest step within +-10 px of each side of that box then gives each side to a few tenths
+of a pixel. Fine: each side is measured in every pixel column (or row) it crosses with the
+area method of :mod:`alignd.vision.edges` and fitted as a line;
+the corners are the intersections of adjacent sides, so every corner uses some hundred
+columns instead of the few pixels around it (the thesis' detector had 0.3 px noise). The
+quadrilateral is not forced to be a rectangle, so a tilted camera's perspective is followed.
+
+Corners come ordered by their angle around the centre, starting from the image's -x
+direction and turning toward -y (on screen: top-left, top-right, bottom-right, bottom-left
+for an upright holder). That order is stable while the holder's image turns by less than
+the angle between its diagonal and its long side (34 deg for 60 x 40 mm), so it holds over a
++-10 deg sweep; with ``hint`` (the previous frame's corners) it is kept by nearest match.
+
+A detection that fails a check (too few edge columns, poor line fit, low contrast, wrong
+size, not convex) is returned with ``ok`` False and NaN for the affected corners: never a
+wrong point. A blank, saturated or target-free image raises VisionError.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from alignd.errors import VisionError
+from alignd.vision.edges import (
+    EdgePoints,
+    Line,
+    as_gray,
+    check_usable,
+    coarse_edge,
+    edge_points,
+    fit_line,
+    intersect,
+)
+from alignd.vision.lens import Lens
+
+__all__ = ["HolderDetection", "YawMeasurement", "measure_yaw", "order_corners", "track_holder"]
+
+log = logging.getLogger(__name__)
+
+_DOWN = 4
+
+
+@dataclass(frozen=True)
+class HolderDetection:
+    """Holder corners (4, 2) px in a consistent order, pose and quality of one frame."""
+
+    ok: bool
+    corners_px: np.ndarray
+    center_px: np.ndarray
+    angle_deg: float
+    quality: float  # 0..1, 1 = every column used, corners well determined
+    corner_sigma_px: float  # estimated standard error of a corner (from the line fits)
+    polarity: str  # "dark": holder darker than its surroundings, or "light"
+    size_px: tuple[float, float]  # mean length of sides 0-1/3-2 and 1-2/0-3
+    corner_ok: np.ndarray = field(default_factory=lambda: np.zeros(4, bool))
+    edge_rms_px: tuple[float, ...] = ()
+    reason: str = ""
+    lines: tuple[Line | None, ...] = ()
+
+    def to_json(self) -> dict[str, object]:
+        """The analyze contract's fields (NaN corners become null)."""
+        def pt(p: np.ndarray) -> list[float] | None:
+            return [float(p[0]), float(p[1])] if np.all(np.isfinite(p)) else None
+        return {"ok": self.ok, "corners_px": [pt(c) for c in self.corners_px],
+                "pose": {"center_px": pt(self.center_px),
+                         "angle_deg": self.angle_deg if math.isfinite(self.angle_deg) else None},
+                "quality": round(self.quality, 4),
+                "corner_sigma_px": (round(self.corner_sigma_px, 5)
+                                    if math.isfinite(self.corner_sigma_px) else None),
+                "polarity": self.polarity, "size_px": list(self.size_px),
+                **({"reason": self.reason} if self.reason else {})}
+
+
+def order_corners(corners: np.ndarray, hint: np.ndarray | None = None) -> np.ndarray:
+    """Sort 4 corners by angle around their centre from -x (screen: TL, TR, BR, BL);
+    with ``hint`` choose the cyclic order closest to it."""
+    c = np.asarray(corners, float)
+    ctr = c.mean(axis=0)
+    ang = np.arctan2(c[:, 1] - ctr[1], c[:, 0] - ctr[0])
+    c = c[np.argsort(ang)]
+    if hint is not None:
+        h = np.asarray(hint, float)
+        if h.shape == (4, 2) and np.all(np.isfinite(h)):
+            costs = [np.sum(np.linalg.norm(np.roll(c, -k, axis=0) - h, axis=1)) for k in range(4)]
+            c = np.roll(c, -int(np.argmin(costs)), axis=0)
+    return c
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
+def _quad_center(c: np.ndarray) -> np.ndarray:
+    p, r = c[0], c[2] - c[0]
+    q, s = c[1], c[3] - c[1]
+    den = _cross(r, s)
+    if abs(den) < 1e-12:
+        return c.mean(axis=0)
+    return p + _cross(q - p, s) / den * r
+
+
+def _quad_angle(c: np.ndarray) -> float:
+    v = (c[1] - c[0]) / np.linalg.norm(c[1] - c[0]) + (c[2] - c[3]) / np.linalg.norm(c[2] - c[3])
+    return math.degrees(math.atan2(v[1], v[0]))
+
+
+def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
+                polarity: str | None) -> list[tuple[float, np.ndarray, str]]:
+    """Rectangular blobs as (score, 4 approx corners in full-res px, polarity)."""
+    h, w = gray.shape
+    small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), 1.0)
+    lo, hi = np.percentile(small, [0.5, 99.5])
+    u8 = np.clip((small - lo) * (255.0 / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
+    otsu, _ = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    # Otsu alone fails when shadows or a third level split the histogram: try a ladder of
+    # thresholds and keep the blobs that are rectangles (as MSER would, but cheaper)
+    thresholds = sorted({int(otsu), *range(32, 240, 32)})
+    sh, sw = u8.shape
+    min_area = 40 if expected_size_px is None else 0.4 * expected_size_px[0] * \
+        expected_size_px[1] / _DOWN ** 2
+    out = []
+    kernel = np.ones((3, 3), np.uint8)
+    pols = ("dark", "light") if polarity is None else (polarity,)
+    for pol in pols:
+        for thr in thresholds:
+            mask = (u8 < thr) if pol == "dark" else (u8 > thr)
+            mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel)
+            cnts, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+            for cnt in cnts:
+                if cnt.shape[0] < 4:
+                    continue
+                x, y, bw, bh = cv2.boundingRect(cnt)
+                # not touching the border (cannot be measured whole), not the whole frame
+                if x <= 0 or y <= 0 or x + bw >= sw or y + bh >= sh:
+                    continue
+                area = cv2.contourArea(cnt) + 0.5 * cv2.arcLength(cnt, True) + 1.0
+                if area < min_area or area > 0.5 * sh * sw:
+                    continue
+                (cx, cy), (rw, rh), ang = cv2.minAreaRect(cnt)
+                rw, rh = rw + 1.0, rh + 1.0  # pixel centres -> pixel extents
+                if rw * rh <= 0 or min(rw, rh) < 4:
+                    continue
+                rect = area / (rw * rh)
+                if rect < 0.86:
+                    continue
+                # the threshold must cut the blob's edge near half height, else the box
+                # is grown by the blur halo or shrunk (a pass-1 window misses the edge)
+                y0, y1 = max(y - 3, 0), min(y + bh + 3, sh)
+                x0, x1 = max(x - 3, 0), min(x + bw + 3, sw)
+                blob = np.zeros((y1 - y0, x1 - x0), np.uint8)
+                cv2.drawContours(blob, [cnt - np.array([x0, y0])], -1, 1, thickness=-1)
+                blob = blob.astype(bool)
+                grown = cv2.dilate(blob.astype(np.uint8), kernel, iterations=3).astype(bool)
+                core = cv2.erode(blob.astype(np.uint8), kernel, iterations=2).astype(bool)
+                ring = grown & ~cv2.dilate(blob.astype(np.uint8), kernel).astype(bool)
+                if not core.any() or not ring.any():
+                    continue
+                win = u8[y0:y1, x0:x1]
+                lin, lout = float(np.median(win[core])), float(np.median(win[ring]))
+                if abs(lout - lin) < 8:
+                    continue
+                r = (thr - lin) / (lout - lin)
+                if not 0.3 <= r <= 0.7:
+                    continue
+                score = rect * (1.0 - abs(r - 0.5)) * math.log(float(area))
+                if expected_size_px is not None:
+                    L, S = max(rw, rh) * _DOWN, min(rw, rh) * _DOWN
+                    eL, eS = max(expected_size_px), min(expected_size_px)
+                    err = max(abs(L / eL - 1), abs(S / eS - 1))
+                    if err > 0.3:
+                        continue
+                    score *= 1.0 - err
+                box = cv2.boxPoints(((cx, cy), (rw, rh), ang))
+                full = (box + 0.5) * _DOWN - 0.5
+                out.append((score, full.astype(float), pol))
+    out.sort(key=lambda t: -t[0])
+    return out
+
+
+def _fit_sides(gray: np.ndarray, corners: np.ndarray, half_width: int, margin: float,
+               min_contrast: float, lens: Lens | None = None
+               ) -> list[tuple[Line | None, EdgePoints]]:
+    res = []
+    for i in range(4):
+        p0, p1 = corners[i], corners[(i + 1) % 4]
+        pts = edge_points(gray, p0, p1, half_width=half_width, margin_px=margin,
+                          min_contrast=min_contrast)
+        if lens is not None and lens.k1 != 0.0:
+            pts = EdgePoints(lens.undistort(pts.xy), pts.contrast, pts.vertical)
+        res.append((fit_line(pts), pts))
+    return res
+
+
+def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None = None,
+                 hint: np.ndarray | None = None, *, polarity: str | None = None,
+                 min_contrast: float = 15.0, max_rms_px: float = 0.4,
+                 passes: int = 1, lens: Lens | None = None) -> HolderDetection:
+    """Find the holder's top face in a top-camera frame.
+
+    ``expected_size_px`` (long, short side in px) rejects blobs of the wrong size;
+    ``hint`` (previous corners) keeps the corner order and prefers the nearest blob;
+    ``polarity`` ("dark"/"light") restricts the search; ``lens`` (focal length, principal
+    point, k1) straightens distorted sides (corners stay in frame pixels; the angle and the
+    size are those of the undistorted image). Raises VisionError when the image
+    is unusable or holds no rectangular target; returns ``ok`` False if the fine fit fails.
+    """
+    gray = as_gray(image, "top image")
+    check_usable(gray, min_contrast, "top image")
+    hint_arr = None if hint is None else np.asarray(hint, float)
+    if hint_arr is not None and hint_arr.shape == (4, 2) and np.all(np.isfinite(hint_arr)):
+        # tracking: the previous corners seed the +-10 px side search directly; if the
+        # holder is not there any more, fall back to a full search
+        try:
+            det = _refine(gray, order_corners(hint_arr), polarity, expected_size_px, hint_arr,
+                          min_contrast, max_rms_px, passes, lens)
+            if det.ok:
+                return det
+        except VisionError:
+            pass
+    cands = _candidates(gray, expected_size_px, polarity)
+    if not cands:
+        raise VisionError("top image: no holder found (no rectangular blob of either "
+                          "polarity" + (f" near {expected_size_px} px" if expected_size_px
+                                        else "") + ")")
+    return _refine(gray, order_corners(cands[0][1]), polarity, expected_size_px, hint_arr,
+                   min_contrast, max_rms_px, passes, lens)
+
+
+def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
+            expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
+            min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None = None
+            ) -> HolderDetection:
+    """Fine fit from approximate corners (a coarse box or the previous frame's corners)."""
+    # pass 0: strongest step near each side of the approximate box (+-10 px), good to a few
+    # tenths of a pixel; then the area method (exact wherever the edge sits in its window,
+    # so one pass suffices; more passes re-centre the windows on the previous lines)
+    coarse = [coarse_edge(gray, corners[i], corners[(i + 1) % 4], search_px=10,
+                          min_step=min_contrast / 2) for i in range(4)]
+    if any(c is None for c in coarse):
+        raise VisionError("top image: the holder's sides could not be located "
+                          f"(side(s) {[i for i, c in enumerate(coarse) if c is None]})")
+    lines: list[Line | None] = list(coarse)
+    empty = EdgePoints(np.empty((0, 2)), np.empty(0), False)
+    sides: list[tuple[Line | None, EdgePoints]] = [(None, empty)] * 4
+    lines_ideal = False  # after a fine pass with a lens, lines live in the ideal image
+    for _ in range(max(passes, 1)):
+        new = corners.copy()
+        for i in range(4):
+            a, b = lines[i - 1], lines[i]
+            if a is not None and b is not None:
+                p = intersect(a, b)
+                if np.all(np.isfinite(p)):
+                    new[i] = p
+        if lines_ideal and lens is not None:
+            new = lens.distort(new)
+        if np.max(np.linalg.norm(new - corners, axis=1)) > 0.25 * np.linalg.norm(
+                corners[2] - corners[0]):
+            break  # a line went astray: keep the previous corners and flag below
+        corners = new
+        sides = _fit_sides(gray, corners, 5, 10.0, min_contrast, lens)
+        lines = [s[0] for s in sides]
+        lines_ideal = True
+    pol = _polarity(gray, corners)
+    det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens)
+    if polarity is not None and det.ok and pol != polarity:
+        raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
+    return det
+
+
+def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
+    """"dark" when the quadrilateral's middle is darker than just outside its sides."""
+    h, w = gray.shape
+    ctr = c.mean(axis=0)
+
+    def level(p: np.ndarray) -> float:
+        x = int(np.clip(round(p[0]), 2, w - 3))
+        y = int(np.clip(round(p[1]), 2, h - 3))
+        return float(np.median(gray[y - 2:y + 3, x - 2:x + 3]))
+
+    outside = []
+    for i in range(4):
+        mid = (c[i] + c[(i + 1) % 4]) / 2
+        v = mid - ctr
+        outside.append(level(mid + 12.0 * v / (np.linalg.norm(v) or 1.0)))
+    return "dark" if level(ctr) < float(np.median(outside)) else "light"
+
+
+def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, pol: str,
+              expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
+              max_rms_px: float, lens: Lens | None = None) -> HolderDetection:
+    lines = [s[0] for s in sides]
+    reasons = []
+    edge_ok = []
+    frac = []
+    for i, (ln, _pts) in enumerate(sides):
+        span = np.linalg.norm(corners[(i + 1) % 4] - corners[i])
+        expected = max(span - 20.0, 1.0) * 0.7  # columns/rows crossed, at most
+        if ln is None:
+            edge_ok.append(False)
+            frac.append(0.0)
+            reasons.append(f"side {i}: no edge found")
+            continue
+        f = min(1.0, ln.n_used / expected)
+        frac.append(f)
+        good = ln.n_used >= 10 and f >= 0.5 and ln.rms_px <= max_rms_px
+        if not good:
+            reasons.append(f"side {i}: {ln.n_used} columns, rms {ln.rms_px:.2f} px")
+        edge_ok.append(good)
+    out = np.full((4, 2), np.nan)
+    sig = np.full(4, np.nan)
+    for i in range(4):
+        a, b = lines[i - 1], lines[i]
+        if edge_ok[i - 1] and edge_ok[i] and a is not None and b is not None:
+            p = intersect(a, b)
+            out[i] = p
+            sig[i] = math.hypot(a.point_sigma(p), b.point_sigma(p))
+    corner_ok = np.all(np.isfinite(out), axis=1)
+    ok = bool(corner_ok.all())
+    center = np.full(2, np.nan)
+    angle = math.nan
+    size = (math.nan, math.nan)
+    if ok:
+        # the holder must sit on the correct side of every line (convex, not self-crossing)
+        if not _convex(out):
+            ok = False
+            reasons.append("fitted sides do not form a convex quadrilateral")
+        else:
+            center = _quad_center(out)
+            angle = _quad_angle(out)
+            size = (float((np.linalg.norm(out[1] - out[0]) + np.linalg.norm(out[2] - out[3])) / 2),
+                    float((np.linalg.norm(out[2] - out[1]) + np.linalg.norm(out[3] - out[0])) / 2))
+            if expected_size_px is not None:
+                eL, eS = max(expected_size_px), min(expected_size_px)
+                L, S = max(size), min(size)
+                if abs(L / eL - 1) > 0.15 or abs(S / eS - 1) > 0.15:
+                    ok = False
+                    reasons.append(f"size {L:.1f} x {S:.1f} px, expected {eL:.1f} x {eS:.1f}")
+        if not ok:
+            out[:] = np.nan
+            corner_ok[:] = False
+    if lens is not None and lens.k1 != 0.0 and ok:
+        out = lens.distort(out)
+        center = lens.distort(center[None])[0]
+    corner_sigma = float(np.nanmax(sig)) if np.any(np.isfinite(sig)) else math.nan
+    quality = min(frac) if frac else 0.0
+    if math.isfinite(corner_sigma):
+        quality *= max(0.0, 1.0 - corner_sigma / 0.5)
+    if hint is not None and ok:
+        out = order_corners(out, hint)
+    return HolderDetection(ok=ok, corners_px=out, center_px=center, angle_deg=angle,
+                           quality=float(quality) if ok else 0.0, corner_sigma_px=corner_sigma,
+                           polarity=pol, size_px=size, corner_ok=corner_ok,
+                           edge_rms_px=tuple(ln.rms_px if ln else math.nan for ln in lines),
+                           reason="; ".join(reasons), lines=tuple(lines))
+
+
+def _convex(c: np.ndarray) -> bool:
+    cr = [_cross(c[(i + 1) % 4] - c[i], c[(i + 2) % 4] - c[(i + 1) % 4])
+          for i in range(4)]
+    return all(x > 0 for x in cr) or all(x < 0 for x in cr)
+
+
+# ---- sample yaw --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class YawMeasurement:
+    """The sample face line in the top view and its yaw from the turntable zero direction."""
+
+    ok: bool
+    face_angle_deg: float  # image direction of the face line (deg, x toward y)
+    yaw_deg: float  # face angle - turntable angle - zero direction, in (-90, 90]
+    face_px: np.ndarray  # (2, 2) end points of the measured face segment
+    offset_px: float  # distance of the face from the holder side it is mounted on
+    side: int  # holder side (0 = corners 0-1, 2 = corners 2-3) carrying the sample
+    rms_px: float
+    reason: str = ""
+
+
+def measure_yaw(image: np.ndarray, det: HolderDetection, turntable_deg: float = 0.0,
+                zero_direction_deg: float = 0.0, *, max_offset_px: float = 80.0,
+                min_contrast: float = 15.0) -> YawMeasurement:
+    """Find the sample face: the strongest edge parallel to a long holder side, outside it.
+
+    The yaw is the face's image angle minus the turntable angle (image rotation by +a
+    turns directions by +a in the design's convention) minus the turntable's zero
+    direction in the image (a calibration constant, 0 when the image x axis is it).
+    """
+    nan2 = np.full((2, 2), np.nan)
+    if not det.ok:
+        return YawMeasurement(False, math.nan, math.nan, nan2, math.nan, -1, math.nan,
+                              "holder not detected")
+    gray = as_gray(image, "top image")
+    c = det.corners_px
+    best = None
+    for side in (0, 2):
+        p0, p1 = c[side], c[(side + 1) % 4]
+        t = (p1 - p0) / np.linalg.norm(p1 - p0)
+        n = np.array([-t[1], t[0]])
+        if np.dot(det.center_px - p0, n) > 0:
+            n = -n  # outward
+        s = np.linspace(0.15, 0.85, 64)
+        base = p0[None] + s[:, None] * (p1 - p0)[None]
+        off = np.arange(0.0, max_offset_px, 1.0)
+        mx = (base[None, :, 0] + off[:, None] * n[0]).astype(np.float32)
+        my = (base[None, :, 1] + off[:, None] * n[1]).astype(np.float32)
+        prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        mean = prof.mean(axis=1).astype(float)
+        grad = np.gradient(mean)
+        start = 5
+        if mean.size <= start + 3:
+            continue
+        k = start + int(np.argmax(np.abs(grad[start:])))
+        step = abs(float(mean[min(k + 3, mean.size - 1)] - mean[max(k - 3, 0)]))
+        if step < min_contrast:
+            continue
+        if best is None or step > best[0]:
+            best = (step, side, float(off[k]), p0 + off[k] * n, p1 + off[k] * n)
+    if best is None:
+        return YawMeasurement(False, math.nan, math.nan, nan2, math.nan, -1, math.nan,
+                              "no sample face found beside the holder")
+    _, side, offset, q0, q1 = best
+    ln = fit_line(edge_points(gray, q0, q1, half_width=5, margin_px=12.0,
+                              min_contrast=min_contrast))
+    if ln is None or ln.rms_px > 0.5:
+        return YawMeasurement(False, math.nan, math.nan, nan2, offset, side, math.nan,
+                              "sample face edge could not be fitted")
+    ang = ln.angle_deg
+    ref = _quad_angle(c)
+    ang = ang + 180.0 * round((ref - ang) / 180.0)  # same sense as the holder angle
+    yaw = (ang - turntable_deg - zero_direction_deg + 90.0) % 180.0 - 90.0
+    ends = np.array([q0, q1])
+    if ln.vertical:
+        face = np.column_stack([ln.minor_at(ends[:, 1]), ends[:, 1]])
+    else:
+        face = np.column_stack([ends[:, 0], ln.minor_at(ends[:, 0])])
+    return YawMeasurement(True, float(ang), float(yaw), face, offset, side, ln.rms_px)

@@ -1,0 +1,48 @@
+"""Radial lens distortion (OpenCV's model with k1 only): pixel <-> ideal pinhole image.
+
+Edges are measured where they are in the (distorted) frame; undistorting the measured edge
+points before the line fits makes the sides straight again, and the corners are mapped back
+to the frame, so a wide-angle lens does not bend the result.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Lens"]
+
+
+@dataclass(frozen=True)
+class Lens:
+    """Focal length and principal point (px) and the radial coefficient k1 (normalised)."""
+
+    focal_px: float
+    principal_px: tuple[float, float]
+    k1: float = 0.0
+
+    def undistort(self, pts: np.ndarray) -> np.ndarray:
+        """Frame pixels (N, 2) -> ideal pinhole pixels."""
+        p = np.asarray(pts, float).reshape(-1, 1, 2)
+        if self.k1 == 0.0 or p.size == 0:
+            return p.reshape(-1, 2).copy()
+        cx, cy = self.principal_px
+        xd = (p[:, 0, 0] - cx) / self.focal_px
+        yd = (p[:, 0, 1] - cy) / self.focal_px
+        xn, yn = xd.copy(), yd.copy()
+        for _ in range(20):  # fixed point of x_d = x_n (1 + k1 r_n^2); converges fast
+            s = 1.0 + self.k1 * (xn * xn + yn * yn)
+            xn, yn = xd / s, yd / s
+        return np.column_stack([cx + self.focal_px * xn, cy + self.focal_px * yn])
+
+    def distort(self, pts: np.ndarray) -> np.ndarray:
+        """Ideal pinhole pixels (N, 2) -> frame pixels."""
+        p = np.asarray(pts, float).reshape(-1, 2)
+        if self.k1 == 0.0:
+            return p.copy()
+        cx, cy = self.principal_px
+        xn = (p[:, 0] - cx) / self.focal_px
+        yn = (p[:, 1] - cy) / self.focal_px
+        s = 1.0 + self.k1 * (xn * xn + yn * yn)
+        return np.column_stack([cx + self.focal_px * xn * s, cy + self.focal_px * yn * s])

@@ -1,0 +1,406 @@
+"""Turntable rim: ellipse fit, perceived eccentricity, camera zenith, plane rectification.
+
+Geometry (the thesis' eq. 3.7, whose text lost its equations, re-derived for a pinhole):
+a circle of radius R lies in the turntable plane; the camera sits at height h above the
+plane, its optical axis meets the plane at the circle's centre and makes the zenith angle
+theta with the plane normal, so the camera is at distance D = h / cos(theta) from the centre.
+In normalised image coordinates (u across the tilt, v along it, v toward the far side) a
+plane point (x, y) images at u = x / (D + y sin), v = y cos / (D + y sin), and the circle
+x^2 + y^2 = R^2 becomes, with rho = R / D,
+
+    cos^2 u^2 + (1 - rho^2 sin^2) v^2 + 2 rho^2 sin cos v - rho^2 cos^2 = 0,
+
+an ellipse with semi-axes rho / sqrt(1 - rho^2 sin^2) (across the tilt) and
+rho cos / (1 - rho^2 sin^2) (along it). Hence
+
+    b / a = cos(theta) / sqrt(1 - rho^2 sin^2(theta)),
+    e^2 = sin^2(theta) (1 - rho^2) / (1 - rho^2 sin^2(theta)),     rho = R cos(theta) / h,
+
+which is e = sin(theta) for a distant camera (rho -> 0). With S = sin^2(theta) and
+q = R^2 / h^2 the inverse is the root of q (1 - e^2) S^2 + (1 - q + e^2 q) S - e^2 = 0.
+The ellipse's centre is *not* the image of the circle's centre: it is shifted toward the
+near side by rho^2 sin cos / (1 - rho^2 sin^2) (normalised units).
+
+When the focal length is known the ellipse alone gives theta and D (no h needed), and with
+them the homography that rectifies image points onto the turntable plane
+(:class:`PlaneRectifier`), which removes the ellipse bias from the bisector method.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from alignd.errors import VisionError
+from alignd.vision.edges import EdgePoints, area_crossings, as_gray, check_usable
+
+__all__ = ["PlaneRectifier", "RimFit", "camera_zenith_from_eccentricity",
+           "eccentricity_from_zenith", "fit_ellipse", "fit_rim", "zenith_from_ellipse"]
+
+
+# ---- eq. 3.7 and its inverse -----------------------------------------------------------
+def eccentricity_from_zenith(zenith_deg: float, radius_mm: float, height_mm: float) -> float:
+    """Perceived eccentricity of a circle of radius R seen from height h at zenith theta."""
+    th = math.radians(zenith_deg)
+    s2 = math.sin(th) ** 2
+    rho2 = (radius_mm * math.cos(th) / height_mm) ** 2
+    if rho2 >= 1.0:
+        raise ValueError("camera inside the cone of the circle (R cos(theta) >= h)")
+    return math.sqrt(s2 * (1 - rho2) / (1 - rho2 * s2))
+
+
+def camera_zenith_from_eccentricity(e: float, radius_mm: float, height_mm: float) -> float:
+    """Camera zenith angle (deg) from the rim's perceived eccentricity, R and h (eq. 3.7)."""
+    if not 0.0 <= e < 1.0:
+        raise ValueError(f"eccentricity must be in [0, 1), got {e}")
+    q = (radius_mm / height_mm) ** 2
+    e2 = e * e
+    bq = 1 - q + e2 * q
+    disc = bq * bq + 4 * q * (1 - e2) * e2
+    S = 2 * e2 / (bq + math.sqrt(disc))  # stable form of the positive root
+    return math.degrees(math.asin(math.sqrt(min(max(S, 0.0), 1.0))))
+
+
+def zenith_from_ellipse(a_px: float, b_px: float, focal_px: float) -> tuple[float, float]:
+    """Zenith (deg) and rho = R / D from the ellipse's semi-axes and the focal length."""
+    an2 = (a_px / focal_px) ** 2
+    bn2 = (b_px / focal_px) ** 2
+    disc = max((an2 + 1) ** 2 - 4 * bn2, 0.0)
+    c2 = ((an2 + 1) - math.sqrt(disc)) / (2 * an2)
+    c2 = min(max(c2, 0.0), 1.0)
+    s2 = 1.0 - c2
+    rho = 1.0 / math.sqrt(s2 + 1.0 / an2)
+    return math.degrees(math.acos(math.sqrt(c2))), rho
+
+
+# ---- ellipse fitting -------------------------------------------------------------------
+def fit_ellipse(xy: np.ndarray) -> np.ndarray:
+    """Direct least-squares ellipse (Fitzgibbon; Halir & Flusser's stable form).
+
+    Returns conic coefficients (A, B, C, D, E, F) of A x^2 + B xy + C y^2 + D x + E y + F = 0
+    in the input's coordinates; data are centred and scaled internally for conditioning.
+    """
+    xy = np.asarray(xy, float)
+    if xy.shape[0] < 6:
+        raise VisionError(f"ellipse fit needs at least 6 points, got {xy.shape[0]}")
+    m = xy.mean(axis=0)
+    sc = float(np.sqrt(((xy - m) ** 2).sum(axis=1).mean())) or 1.0
+    x = (xy[:, 0] - m[0]) / sc
+    y = (xy[:, 1] - m[1]) / sc
+    D1 = np.column_stack([x * x, x * y, y * y])
+    D2 = np.column_stack([x, y, np.ones_like(x)])
+    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
+    T = -np.linalg.solve(S3, S2.T)
+    M = S1 + S2 @ T
+    M = np.array([M[2] / 2, -M[1], M[0] / 2])
+    _w, v = np.linalg.eig(M)
+    v = np.real(v)
+    cond = 4 * v[0] * v[2] - v[1] ** 2
+    idx = np.flatnonzero(cond > 0)
+    if idx.size == 0:
+        raise VisionError("points do not lie on an ellipse")
+    a1 = v[:, idx[0]]
+    a2 = T @ a1
+    A, B, C, D, E, F = (*a1, *a2)
+    # undo scaling: x = (X - mx)/sc
+    s2 = sc * sc
+    A2, B2, C2 = A / s2, B / s2, C / s2
+    D2_, E2 = D / sc, E / sc
+    mx, my = m
+    return np.array([
+        A2, B2, C2,
+        -2 * A2 * mx - B2 * my + D2_,
+        -2 * C2 * my - B2 * mx + E2,
+        A2 * mx * mx + B2 * mx * my + C2 * my * my - D2_ * mx - E2 * my + F,
+    ])
+
+
+def _conic_params(k: np.ndarray) -> tuple[np.ndarray, tuple[float, float], float]:
+    A, B, C, D, E, F = k
+    M = np.array([[A, B / 2], [B / 2, C]])
+    ctr = np.linalg.solve(M, -np.array([D, E]) / 2)
+    val = -(A * ctr[0] ** 2 + B * ctr[0] * ctr[1] + C * ctr[1] ** 2 + D * ctr[0] + E * ctr[1]
+            + F)
+    w, v = np.linalg.eigh(M / val)
+    if np.any(w <= 0):
+        raise VisionError("fitted conic is not an ellipse")
+    axes = 1.0 / np.sqrt(w)  # ascending eigenvalues -> a, b
+    ang = math.degrees(math.atan2(v[1, 0], v[0, 0]))
+    ang = (ang + 90.0) % 180.0 - 90.0
+    return ctr, (float(axes[0]), float(axes[1])), ang
+
+
+def _sampson(k: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    A, B, C, D, E, F = k
+    x, y = xy[:, 0], xy[:, 1]
+    f = A * x * x + B * x * y + C * y * y + D * x + E * y + F
+    gx = 2 * A * x + B * y + D
+    gy = B * x + 2 * C * y + E
+    return f / np.maximum(np.hypot(gx, gy), 1e-12)
+
+
+@dataclass(frozen=True)
+class RimFit:
+    """The rim ellipse and what it says about the top camera."""
+
+    center_px: np.ndarray
+    axes_px: tuple[float, float]  # semi-axes a >= b
+    angle_deg: float  # major axis direction (x toward y)
+    eccentricity: float
+    camera_zenith_deg: float  # eq. 3.7 from e, R, h (NaN if R or h unknown)
+    rms_px: float
+    n_points: int
+    conic: np.ndarray  # (A, B, C, D, E, F)
+
+    def to_json(self) -> dict[str, object]:
+        zen = self.camera_zenith_deg
+        return {"ellipse": {"center_px": [float(v) for v in self.center_px],
+                            "axes_px": [float(v) for v in self.axes_px],
+                            "angle_deg": self.angle_deg},
+                "eccentricity": self.eccentricity,
+                "camera_zenith_deg": zen if math.isfinite(zen) else None,
+                "rms_px": self.rms_px, "n_points": self.n_points}
+
+
+def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
+    """The largest well-fitting elliptical contour at 1/4 scale, as a full-res conic."""
+    h, w = gray.shape
+    f = 4
+    small = cv2.resize(gray, (w // f, h // f), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), 1.0)
+    lo, hi = np.percentile(small, [0.5, 99.5])
+    if hi - lo < min_contrast:
+        raise VisionError("rim image: too little contrast for a rim")
+    u8 = np.clip((small - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+    sh, sw = u8.shape
+    best = None
+    for thr in range(32, 240, 32):
+        for mask in (u8 < thr, u8 > thr):
+            cnts, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST,
+                                       cv2.CHAIN_APPROX_NONE)
+            for cnt in cnts:
+                if cnt.shape[0] < 40:
+                    continue
+                pts = cnt[:, 0, :].astype(float)
+                inner = ((pts[:, 0] > 1) & (pts[:, 0] < sw - 2) & (pts[:, 1] > 1)
+                         & (pts[:, 1] < sh - 2))
+                if inner.mean() < 0.6 or inner.sum() < 40:
+                    continue
+                pts = pts[inner]
+                try:
+                    k = fit_ellipse(pts)
+                    _ctr, (a, b), _ = _conic_params(k)
+                except (VisionError, np.linalg.LinAlgError):
+                    continue
+                if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
+                    continue
+                res = float(np.sqrt(np.mean(_sampson(k, pts) ** 2)))
+                if res > 1.0:
+                    continue
+                if best is None or a * b > best[0]:
+                    best = (a * b, pts)
+    if best is None:
+        raise VisionError("rim image: no elliptical rim found")
+    full = (best[1] + 0.5) * f - 0.5
+    return _outer_crossings(gray, fit_ellipse(full), min_contrast)
+
+
+def _outer_crossings(gray: np.ndarray, k: np.ndarray, min_contrast: float,
+                     reach_px: float = 14.0, n: int = 360) -> np.ndarray:
+    """Refine a rough conic to ~0.3 px: along normals, from the background inward, the
+    first crossing of half the first strong step (the turntable's outer boundary, not the
+    inner edge of a rim ring)."""
+    ctr, (a, b), ang = _conic_params(k)
+    phi = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    rot = math.radians(ang)
+    cr, sr = math.cos(rot), math.sin(rot)
+    ex, ey = a * np.cos(phi), b * np.sin(phi)
+    px = ctr[0] + cr * ex - sr * ey
+    py = ctr[1] + sr * ex + cr * ey
+    nx, ny = cr * ex / a ** 2 - sr * ey / b ** 2, sr * ex / a ** 2 + cr * ey / b ** 2
+    nn = np.hypot(nx, ny)
+    nx, ny = nx / nn, ny / nn
+    s = np.arange(reach_px, -reach_px - 0.5, -0.5)  # outside -> inside
+    mx = (px[:, None] + s[None] * nx[:, None]).astype(np.float32)
+    my = (py[:, None] + s[None] * ny[:, None]).astype(np.float32)
+    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=float("nan"))
+    pts = []
+    for i in range(n):
+        v = prof[i]
+        if not np.all(np.isfinite(v)):
+            continue
+        bg = float(np.median(v[:6]))
+        d = np.abs(v - bg)
+        strong = np.flatnonzero(d > max(min_contrast, 0.35 * d.max()))
+        if strong.size == 0 or d.max() < min_contrast:
+            continue
+        j = strong[0]
+        # the step's level: a few samples past the first strong one
+        lvl = float(np.median(v[j:j + 6]))
+        half = abs(lvl - bg) / 2
+        jj = np.flatnonzero(d[:j + 1] >= half)
+        if jj.size == 0:
+            continue
+        j1 = int(jj[0])
+        if j1 == 0:
+            continue
+        f = (half - d[j1 - 1]) / max(d[j1] - d[j1 - 1], 1e-9)
+        t = s[j1 - 1] + f * (s[j1] - s[j1 - 1])
+        pts.append((px[i] + t * nx[i], py[i] + t * ny[i]))
+    if len(pts) < 20:
+        raise VisionError("rim image: the rim's outer edge could not be traced")
+    xy = np.asarray(pts)
+    k2 = fit_ellipse(xy)
+    for _ in range(3):
+        r = _sampson(k2, xy)
+        keep = np.abs(r) < max(4 * 1.4826 * float(np.median(np.abs(r))), 0.3)
+        if keep.all() or keep.sum() < 20:
+            break
+        xy = xy[keep]
+        k2 = fit_ellipse(xy)
+    return k2
+
+
+def _rim_points(gray: np.ndarray, k: np.ndarray, half_width: int, min_contrast: float,
+                tails: int) -> EdgePoints:
+    """Area-method crossings of the conic k, columns where it is flat, rows where steep."""
+    A, B, C, D, E, F = k
+    h, w = gray.shape
+    chunks_xy, chunks_c = [], []
+    for vertical in (False, True):
+        if not vertical:  # columns x: C y^2 + (B x + E) y + (A x^2 + D x + F) = 0
+            t = np.arange(w, dtype=float)
+            qa, qb, qc = C, B * t + E, A * t * t + D * t + F
+        else:  # rows y: A x^2 + (B y + D) x + (C y^2 + E y + F) = 0
+            t = np.arange(h, dtype=float)
+            qa, qb, qc = A, B * t + D, C * t * t + E * t + F
+        disc = qb * qb - 4 * qa * qc
+        ok = disc > 0
+        for sign in (-1.0, 1.0):
+            root = np.full_like(t, np.nan)
+            root[ok] = (-qb[ok] + sign * np.sqrt(disc[ok])) / (2 * qa)
+            if not vertical:
+                x, y = t, root
+            else:
+                x, y = root, t
+            gx = 2 * A * x + B * y + D
+            gy = B * x + 2 * C * y + E
+            use = np.isfinite(root)
+            use &= (np.abs(gy) >= np.abs(gx)) if not vertical else (np.abs(gx) > np.abs(gy))
+            # at least 45 deg from the profile direction: keep a margin from the switch
+            idx = np.flatnonzero(use)
+            if idx.size < 3:
+                continue
+            # split into contiguous runs so that the along-edge smoothing stays on one arc
+            runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)
+            for run in runs:
+                if run.size < 3:
+                    continue
+                pts = area_crossings(gray, t[run], root[run], vertical, half_width=half_width,
+                                     tails=tails, min_contrast=min_contrast)
+                if pts.xy.shape[0]:
+                    chunks_xy.append(pts.xy)
+                    chunks_c.append(pts.contrast)
+    if not chunks_xy:
+        return EdgePoints(np.empty((0, 2)), np.empty(0), False)
+    return EdgePoints(np.concatenate(chunks_xy), np.concatenate(chunks_c), False)
+
+
+def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float | None = 800.0,
+            *, min_contrast: float = 15.0, half_width: int = 4, tails: int = 2) -> RimFit:
+    """Fit the turntable rim's outer edge; eccentricity and (with R, h) camera zenith.
+
+    The whole rim (or most of it) must be in view: at the reference rig's 160 um/px a
+    150 mm rim is larger than the frame, so calibrate with a wider view or a smaller
+    concentric disc. Raises VisionError when no elliptical rim is visible.
+    """
+    gray = as_gray(image, "rim image")
+    check_usable(gray, min_contrast, "rim image")
+    k = _coarse_ellipse(gray, min_contrast)
+    pts = EdgePoints(np.empty((0, 2)), np.empty(0), False)
+    for _ in range(2):  # re-centre the windows on the previous fit
+        pts = _rim_points(gray, k, half_width, min_contrast, tails)
+        if pts.xy.shape[0] < 50:
+            raise VisionError(f"rim image: only {pts.xy.shape[0]} rim edge points measured")
+        xy = pts.xy
+        k = fit_ellipse(xy)
+        for _ in range(3):  # drop outliers (specks, the holder's shadow on the rim)
+            r = _sampson(k, xy)
+            sig = max(float(np.median(np.abs(r))) * 1.4826, 0.01)
+            keep = np.abs(r) < 4 * sig
+            if keep.all():
+                break
+            xy = xy[keep]
+            k = fit_ellipse(xy)
+    ctr, (a, b), ang = _conic_params(k)
+    rms = float(np.sqrt(np.mean(_sampson(k, xy) ** 2)))
+    e = math.sqrt(max(0.0, 1.0 - (b / a) ** 2))
+    zen = (camera_zenith_from_eccentricity(e, radius_mm, height_mm)
+           if radius_mm and height_mm else math.nan)
+    return RimFit(center_px=ctr, axes_px=(a, b), angle_deg=ang, eccentricity=e,
+                  camera_zenith_deg=zen, rms_px=rms, n_points=int(xy.shape[0]), conic=k)
+
+
+# ---- perspective correction --------------------------------------------------------------
+class PlaneRectifier:
+    """Maps image points to the turntable plane (mm, origin on the rim's centre) and back.
+
+    Built from a rim fit, the focal length and the principal point, assuming (as the rig is
+    set up) that the optical axis meets the plane at the rim's centre. The tilt's sense
+    along the minor axis comes from the ellipse centre's shift toward the near side, which
+    needs the principal point to about a pixel; ``far_direction`` (image unit vector
+    pointing to the far side) overrides it.
+    """
+
+    def __init__(self, zenith_deg: float, distance_mm: float, far_direction: np.ndarray,
+                 focal_px: float, principal_px: tuple[float, float]) -> None:
+        th = math.radians(zenith_deg)
+        s, c = math.sin(th), math.cos(th)
+        m = np.asarray(far_direction, float)
+        m = m / (np.linalg.norm(m) or 1.0)
+        self.n = np.array([s * m[0], s * m[1], -c])  # plane normal toward the camera
+        self.distance_mm = float(distance_mm)
+        self.height_mm = c * distance_mm  # camera height above the plane
+        self.focal_px = float(focal_px)
+        self.principal_px = (float(principal_px[0]), float(principal_px[1]))
+        self.zenith_deg = float(zenith_deg)
+        x0 = np.array([0.0, 0.0, self.distance_mm])
+        self.x0 = x0
+        e1 = np.array([1.0, 0.0, 0.0]) - self.n[0] * self.n
+        self.e1 = e1 / np.linalg.norm(e1)
+        self.e2 = np.cross(self.e1, self.n)
+
+    @classmethod
+    def from_rim(cls, fit: RimFit, focal_px: float, principal_px: tuple[float, float],
+                 radius_mm: float, far_direction: np.ndarray | None = None) -> PlaneRectifier:
+        zen, rho = zenith_from_ellipse(fit.axes_px[0], fit.axes_px[1], focal_px)
+        psi = math.radians(fit.angle_deg)
+        minor = np.array([-math.sin(psi), math.cos(psi)])
+        if far_direction is None:
+            off = np.asarray(fit.center_px, float) - np.asarray(principal_px, float)
+            # the ellipse centre lies toward the near side
+            far_direction = -minor if float(off @ minor) > 0 else minor
+        return cls(zen, radius_mm / rho, far_direction, focal_px, principal_px)
+
+    def to_plane_mm(self, points_px: np.ndarray, plane_height_mm: float = 0.0) -> np.ndarray:
+        """Image points (N, 2) -> (N, 2) mm in the plane ``plane_height_mm`` above the
+        turntable; x along the image x, y along the image y, origin on the axis."""
+        p = np.atleast_2d(np.asarray(points_px, float))
+        r = np.column_stack([(p[:, 0] - self.principal_px[0]) / self.focal_px,
+                             (p[:, 1] - self.principal_px[1]) / self.focal_px,
+                             np.ones(len(p))])
+        d = -(self.height_mm - plane_height_mm)
+        X = r * (d / (r @ self.n))[:, None]
+        rel = X - (self.x0 + plane_height_mm * self.n)
+        return np.column_stack([rel @ self.e1, rel @ self.e2])
+
+    def to_image_px(self, points_mm: np.ndarray, plane_height_mm: float = 0.0) -> np.ndarray:
+        """Inverse of :meth:`to_plane_mm`."""
+        q = np.atleast_2d(np.asarray(points_mm, float))
+        X = (self.x0 + plane_height_mm * self.n)[None] + q[:, :1] * self.e1 + q[:, 1:] * self.e2
+        return np.column_stack([self.principal_px[0] + self.focal_px * X[:, 0] / X[:, 2],
+                                self.principal_px[1] + self.focal_px * X[:, 1] / X[:, 2]])

@@ -1,0 +1,244 @@
+"""Side camera: the sample edge, the vertical reference pole, and the tilt between them.
+
+Angles are from the image vertical, positive when the line's top leans toward +x. The tilt
+is sample minus pole, so a rolled camera (which turns both lines) does not change it.
+
+Method: Canny + Hough finds the near-vertical edges coarsely; each is then measured in every
+row it crosses with the area method (:mod:`alignd.vision.edges`) and fitted as a line
+x = a + b y. Edges spanning most of the image height belong to the pole (a rod seen from
+the side: two edges of opposite polarity); the shorter ones to the sample. The thesis'
+Canny + Hough angle (0.01 deg accumulator bins) is kept as :func:`baseline_tilt`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from alignd.errors import VisionError
+from alignd.vision.edges import (
+    EdgePoints,
+    Line,
+    as_gray,
+    check_usable,
+    coarse_edge,
+    edge_points,
+    fit_line,
+)
+
+__all__ = ["SideEdge", "SideMeasurement", "baseline_tilt", "find_vertical_edges", "measure_tilt"]
+
+
+@dataclass(frozen=True)
+class SideEdge:
+    """One near-vertical edge: its angle, position, extent and fit."""
+
+    angle_deg: float
+    sigma_deg: float
+    x_mid_px: float  # x at the middle of its extent
+    rows: tuple[int, int]
+    contrast: float  # right level minus left level (DN)
+    line: Line
+
+
+@dataclass(frozen=True)
+class SideMeasurement:
+    """Sample and pole angles (deg from vertical) and the tilt (sample - pole)."""
+
+    sample_angle_deg: float
+    pole_angle_deg: float
+    tilt_deg: float
+    sigma_deg: float  # standard error of the tilt from the line fits
+    sample_edges: tuple[SideEdge, ...]
+    pole_edges: tuple[SideEdge, ...]
+
+    def to_json(self) -> dict[str, object]:
+        return {"sample_angle_deg": self.sample_angle_deg, "pole_angle_deg": self.pole_angle_deg,
+                "tilt_deg": self.tilt_deg, "sigma_deg": self.sigma_deg,
+                "sample_x_px": [round(e.x_mid_px, 3) for e in self.sample_edges],
+                "pole_x_px": [round(e.x_mid_px, 3) for e in self.pole_edges]}
+
+
+def _angle_of(line: Line) -> tuple[float, float]:
+    """Angle from vertical (top toward +x positive) and its standard error, in degrees."""
+    b = -line.n[1] / line.n[0]  # x = a + b y
+    sb = math.sqrt(max(line.cov_ab[1, 1], 0.0))
+    return math.degrees(math.atan(-b)), math.degrees(sb / (1 + b * b))
+
+
+def _hough_vertical(gray: np.ndarray, theta_step_deg: float, max_angle_deg: float,
+                    threshold: int) -> list[tuple[float, float, float]]:
+    """Near-vertical Hough lines as (angle_deg, x at mid-height, -votes)."""
+    u8 = np.clip(gray, 0, 255).astype(np.uint8)
+    blur = cv2.GaussianBlur(u8, (0, 0), 1.0)
+    edges = cv2.Canny(blur, 30, 90)
+    h = gray.shape[0]
+    out = []
+    step = math.radians(theta_step_deg)
+    amax = math.radians(max_angle_deg)
+    for lo, hi in ((0.0, amax), (math.pi - amax, math.pi)):
+        lines = cv2.HoughLinesWithAccumulator(edges, 1, step, threshold, min_theta=lo,
+                                              max_theta=hi)
+        if lines is None:
+            continue
+        for rho, theta, votes in np.asarray(lines).reshape(-1, 3):
+            ang = theta if theta < math.pi / 2 else theta - math.pi
+            x_mid = (rho - (h - 1) / 2 * math.sin(theta)) / math.cos(theta)
+            out.append((math.degrees(ang), float(x_mid), -float(votes)))
+    return out
+
+
+def find_vertical_edges(image: np.ndarray, *, min_contrast: float = 15.0,
+                        max_angle_deg: float = 8.0, min_rows: int = 60,
+                        end_trim_rows: int = 6) -> list[SideEdge]:
+    """All near-vertical straight edges, sub-pixel, sorted by x."""
+    gray = as_gray(image, "side image")
+    check_usable(gray, min_contrast, "side image")
+    h = gray.shape[0]
+    seeds = _hough_vertical(gray, 0.25, max_angle_deg, max(min_rows // 2, 20))
+    seeds.sort(key=lambda s: s[2])
+    taken: list[float] = []
+    edges: list[SideEdge] = []
+    for ang, x_mid, _ in seeds:
+        if any(abs(x_mid - t) < 6.0 for t in taken):
+            continue
+        taken.append(x_mid)
+        tb = math.tan(math.radians(ang))
+        # x(y) = x_mid - (y - ymid) * tan(angle)
+        p0 = np.array([x_mid + (h - 1) / 2 * tb, 0.0])
+        p1 = np.array([x_mid - (h - 1) / 2 * tb, h - 1.0])
+        c = coarse_edge(gray, p0, p1, search_px=6, margin_px=2.0, min_step=min_contrast / 2)
+        if c is None:
+            continue
+        ln = _refine(gray, c, h, min_contrast, min_rows, end_trim_rows)
+        if ln is not None:  # second pass: windows re-centred on the first fit
+            ln = _refine(gray, ln[0], h, min_contrast, min_rows, end_trim_rows)
+        if ln is None:
+            continue
+        ln, pts = ln
+        a, sa = _angle_of(ln)
+        rows = (int(pts.xy[:, 1].min()) - end_trim_rows, int(pts.xy[:, 1].max()) + end_trim_rows)
+        ymid = (rows[0] + rows[1]) / 2
+        edges.append(SideEdge(a, sa, float(ln.minor_at(ymid)), rows, ln.contrast, ln))
+    # drop duplicates that converged onto the same edge
+    edges.sort(key=lambda e: e.x_mid_px)
+    uniq: list[SideEdge] = []
+    for e in edges:
+        if uniq and abs(e.x_mid_px - uniq[-1].x_mid_px) < 6.0:
+            if e.line.n_used > uniq[-1].line.n_used:
+                uniq[-1] = e
+            continue
+        uniq.append(e)
+    return uniq
+
+
+def _refine(gray: np.ndarray, seed: Line, h: int, min_contrast: float, min_rows: int,
+            end_trim_rows: int) -> tuple[Line, EdgePoints] | None:
+    """Area-method points along ``seed`` (rows), one polarity, ends trimmed; the line."""
+    q0 = np.array([seed.minor_at(0.0), 0.0])
+    q1 = np.array([seed.minor_at(h - 1.0), h - 1.0])
+    pts = edge_points(gray, q0, q1, half_width=5, margin_px=2.0, min_contrast=min_contrast,
+                      vertical=True)
+    if pts.xy.shape[0] < min_rows:
+        return None
+    # keep one polarity (the dominant) so a crossing edge cannot pollute the line
+    sgn = np.sign(np.median(pts.contrast))
+    keep = np.sign(pts.contrast) == sgn
+    # rows next to the edge's ends see the end face too: keep away from them
+    if keep.sum() > 2 * end_trim_rows:
+        ys = pts.xy[keep, 1]
+        keep &= (pts.xy[:, 1] > ys.min() + end_trim_rows) & (
+            pts.xy[:, 1] < ys.max() - end_trim_rows)
+    pts = EdgePoints(pts.xy[keep], pts.contrast[keep], True)
+    ln = fit_line(pts)
+    if ln is None or ln.n_used < min_rows:
+        return None
+    return ln, pts
+
+
+def _spans(e: SideEdge, h: int, fraction: float) -> bool:
+    """Does the edge run (nearly) from the image top to its bottom, as the pole does?"""
+    gap = (1.0 - fraction) * (h - 1) / 2
+    return e.rows[0] <= gap and e.rows[1] >= h - 1 - gap
+
+
+def _combine(edges: list[SideEdge]) -> tuple[float, float]:
+    w = np.array([1.0 / max(e.sigma_deg, 1e-6) ** 2 for e in edges])
+    a = np.array([e.angle_deg for e in edges])
+    return float(w @ a / w.sum()), float(1.0 / math.sqrt(w.sum()))
+
+
+def measure_tilt(image: np.ndarray, *, pole_x_px: float | None = None,
+                 sample_x_px: float | None = None, min_contrast: float = 15.0,
+                 pole_min_fraction: float = 0.97) -> SideMeasurement:
+    """Sample angle, pole angle and tilt from one side-camera frame.
+
+    The pole's edges run through the image (top to bottom, ``pole_min_fraction`` of the
+    height centred), the sample's do not; give
+    ``pole_x_px`` / ``sample_x_px`` (approximate x) when the scene is ambiguous.
+    Raises VisionError when either target is missing.
+    """
+    edges = find_vertical_edges(image, min_contrast=min_contrast)
+    h = np.asarray(image).shape[0]
+    if not edges:
+        raise VisionError("side image: no near-vertical edge found (neither sample nor pole)")
+    if pole_x_px is not None:
+        pole_pool = sorted(edges, key=lambda e: abs(e.x_mid_px - pole_x_px))[:2]
+        pole_pool = [e for e in pole_pool if abs(e.x_mid_px - pole_x_px) < 60]
+    else:
+        pole_pool = [e for e in edges if _spans(e, h, pole_min_fraction)]
+    pole: list[SideEdge] = []
+    if len(pole_pool) >= 2:
+        # the rod: the closest pair of opposite polarity
+        best = None
+        for i in range(len(pole_pool)):
+            for j in range(i + 1, len(pole_pool)):
+                a, b = pole_pool[i], pole_pool[j]
+                if a.contrast * b.contrast < 0:
+                    d = abs(a.x_mid_px - b.x_mid_px)
+                    if best is None or d < best[0]:
+                        best = (d, [a, b])
+        pole = best[1] if best else [max(pole_pool, key=lambda e: e.line.n_used)]
+    elif pole_pool:
+        pole = pole_pool
+    if not pole:
+        raise VisionError("side image: reference pole not found (no edge spanning "
+                          f"{100 * pole_min_fraction:.0f} % of the image height)")
+    rest = [e for e in edges if all(e is not p for p in pole)]
+    if sample_x_px is not None:
+        rest = [e for e in rest if abs(e.x_mid_px - sample_x_px) < 150]
+    if pole_x_px is None:
+        rest = [e for e in rest if not _spans(e, h, pole_min_fraction)]
+    if not rest:
+        raise VisionError("side image: sample edge not found (no edge besides the pole)")
+    # the sample: its longest edge, plus a parallel partner (the plate's other face)
+    main = max(rest, key=lambda e: e.line.n_used)
+    sample = [main] + [e for e in rest if e is not main and abs(e.angle_deg - main.angle_deg)
+                       < 0.2 and abs(e.x_mid_px - main.x_mid_px) < 200
+                       and e.contrast * main.contrast < 0]
+    sample = sample[:2]
+    sa, ss = _combine(sample)
+    pa, ps = _combine(pole)
+    return SideMeasurement(sa, pa, sa - pa, math.hypot(ss, ps), tuple(sample), tuple(pole))
+
+
+def baseline_tilt(image: np.ndarray, pole_x_px: float, sample_x_px: float, *,
+                  theta_step_deg: float = 0.01, window_px: float = 40.0
+                  ) -> tuple[float, float, float]:
+    """The thesis' method: Canny + Hough; the strongest line near each x gives its angle.
+
+    Returns (sample_angle_deg, pole_angle_deg, tilt_deg); NaN where no line was found.
+    """
+    gray = as_gray(image, "side image")
+    h = gray.shape[0]
+    lines = _hough_vertical(gray, theta_step_deg, 3.0, h // 4)
+
+    def pick(x: float) -> float:
+        near = [ln for ln in lines if abs(ln[1] - x) < window_px]
+        return min(near, key=lambda ln: ln[2])[0] if near else math.nan
+
+    s, p = pick(sample_x_px), pick(pole_x_px)
+    return s, p, s - p

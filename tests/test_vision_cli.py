@@ -1,0 +1,115 @@
+"""``alignctl analyze``: JSON fields per the contract, sweep files, exit codes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from alignd.cli import main
+from alignd.solve.sweep import load_sweep
+from drivers.config import SimWorldConfig
+from drivers.sim.render import RenderOptions, posed_world, render_side, render_top, top_truth
+
+OPTS = RenderOptions(gradient=(0.2, 0.1))
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    d = tmp_path_factory.mktemp("frames")
+    rng = np.random.default_rng(7)
+    tops, truths = [], []
+    for a in (-10.0, -2.5, 5.0, 10.0):
+        w = posed_world(SimWorldConfig(yaw_deg=1.5), seed=2, turntable_deg=a)
+        sc, cam = w.top_scene(), w.top_camera
+        p = d / f"top_{a:+.1f}deg.png"
+        cv2.imwrite(str(p), render_top(sc, cam, OPTS, rng))
+        tops.append(str(p))
+        truths.append(np.asarray(top_truth(sc, cam, OPTS)["corners_px"]))
+    side = d / "side.png"
+    cv2.imwrite(str(side), render_side(posed_world(SimWorldConfig(tilt_deg=0.3)).side_scene(),
+                                       OPTS, rng))
+    w = posed_world(SimWorldConfig(pixel_size_um=500.0, top_camera_zenith_deg=4.0,
+                                   axis_px=(640.0, 360.0)))
+    rim = d / "rim.png"
+    cv2.imwrite(str(rim), render_top(w.top_scene(), w.top_camera, OPTS, rng))
+    blank = d / "blank.png"
+    cv2.imwrite(str(blank), np.full((720, 1280), 100, np.uint8))
+    bad = d / "bad.png"
+    bad.write_bytes(b"\x89PNG but not really")
+    return {"dir": d, "tops": tops, "truths": truths, "side": str(side), "rim": str(rim),
+            "blank": str(blank), "bad": str(bad)}
+
+
+def _lines(out: str) -> list[dict]:
+    return [json.loads(s) for s in out.splitlines() if s.strip()]
+
+
+def test_top_json_fields(images, capsys) -> None:
+    rc = main(["analyze", "top", *images["tops"], "--json"])
+    objs = _lines(capsys.readouterr().out)
+    assert rc == 0 and len(objs) == 4
+    for o, f, t in zip(objs, images["tops"], images["truths"], strict=True):
+        assert o["file"] == f
+        assert np.max(np.abs(np.asarray(o["corners_px"]) - t)) < 0.06
+        assert set(o["pose"]) == {"center_px", "angle_deg"}
+        assert 0.8 < o["quality"] <= 1.0
+
+
+def test_top_sweep_file_round_trips_through_the_solver_reader(images, tmp_path, capsys) -> None:
+    out = tmp_path / "sweep.json"
+    rc = main(["analyze", "top", *images["tops"], "--sweep-out", str(out),
+               "--pixel-size-um", "160"])
+    assert rc == 0
+    sw = load_sweep(out)
+    assert list(sw.angles_deg) == [-10.0, -2.5, 5.0, 10.0]  # from the file names
+    assert sw.pixel_size_um == 160.0 and sw.points.shape == (4, 4, 2)
+    # the same feature in every frame (order kept through the sweep)
+    for k in range(4):
+        assert np.max(np.abs(sw.points[:, k] - np.asarray(images["truths"])[:, k])) < 0.06
+    capsys.readouterr()
+
+
+def test_sweep_needs_angles(images, tmp_path, capsys) -> None:
+    img = images["dir"] / "noangle.png"
+    img.write_bytes(Path(images["tops"][0]).read_bytes())
+    rc = main(["analyze", "top", str(img), "--sweep-out", str(tmp_path / "s.json")])
+    assert rc == 2
+    assert "no turntable angle" in capsys.readouterr().err
+    rc = main(["analyze", "top", str(img), "--sweep-out", str(tmp_path / "s.json"),
+               "--angles", "3.5"])
+    assert rc == 0 and load_sweep(tmp_path / "s.json").angles_deg[0] == 3.5
+
+
+def test_side_and_rim_json(images, capsys) -> None:
+    assert main(["analyze", "side", images["side"], "--json"]) == 0
+    o = _lines(capsys.readouterr().out)[0]
+    assert o["file"] == images["side"]
+    assert o["tilt_deg"] == pytest.approx(0.3, abs=0.002)
+    assert o["sample_angle_deg"] - o["pole_angle_deg"] == pytest.approx(o["tilt_deg"])
+    assert main(["analyze", "rim", images["rim"], "--json", "--radius-mm", "150",
+                 "--height-mm", "800"]) == 0
+    o = _lines(capsys.readouterr().out)[0]
+    assert set(o["ellipse"]) == {"center_px", "axes_px", "angle_deg"}
+    assert o["eccentricity"] == pytest.approx(0.0688, abs=0.003)
+    assert o["camera_zenith_deg"] == pytest.approx(4.0, abs=0.1)
+
+
+def test_unreadable_and_targetless_images_exit_2(images, capsys) -> None:
+    rc = main(["analyze", "top", images["bad"], images["blank"], images["tops"][0],
+               "missing.png", "--json"])
+    cap = capsys.readouterr()
+    objs = _lines(cap.out)
+    assert rc == 2
+    assert [o["file"] for o in objs] == [images["bad"], images["blank"], images["tops"][0],
+                                         "missing.png"]
+    assert "cannot read image" in objs[0]["error"]
+    assert "blank" in objs[1]["error"]
+    assert "corners_px" in objs[2]
+    assert "no such image" in objs[3]["error"]
+    assert cap.err.count("alignctl analyze: error:") == 3
+    assert main(["analyze", "side", images["blank"]]) == 2
+    assert main(["analyze", "rim", images["blank"]]) == 2

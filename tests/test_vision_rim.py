@@ -1,0 +1,103 @@
+"""Rim ellipse, eccentricity, eq. 3.7 (derived) and the plane rectification."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from alignd.errors import VisionError
+from alignd.vision.rim import (
+    PlaneRectifier,
+    camera_zenith_from_eccentricity,
+    eccentricity_from_zenith,
+    fit_ellipse,
+    fit_rim,
+    zenith_from_ellipse,
+)
+from drivers.config import SimWorldConfig
+from drivers.sim.render import RenderOptions, posed_world, render_top, top_truth
+
+
+def _rim_world(zen: float, seed: int = 1):
+    cfg = SimWorldConfig(pixel_size_um=500.0, top_camera_zenith_deg=zen, axis_px=(640.0, 360.0),
+                         rim_radius_mm=150.0)
+    return posed_world(cfg, seed=seed, turntable_deg=3.0)
+
+
+@pytest.mark.parametrize("zen", [0.3, 2.0, 7.0, 25.0])
+def test_eq_3_7_round_trip_and_far_limit(zen: float) -> None:
+    e = eccentricity_from_zenith(zen, 150.0, 800.0)
+    assert camera_zenith_from_eccentricity(e, 150.0, 800.0) == pytest.approx(zen, rel=1e-9)
+    # a distant camera sees e = sin(theta); nearby, perspective lowers it
+    assert eccentricity_from_zenith(zen, 150.0, 1e9) == pytest.approx(
+        math.sin(math.radians(zen)), rel=1e-9)
+    assert e < math.sin(math.radians(zen))
+
+
+def test_fit_ellipse_recovers_an_exact_conic() -> None:
+    t = np.linspace(0, 2 * np.pi, 50, endpoint=False)
+    a, b, ang = 300.0, 200.0, math.radians(25.0)
+    x = 640 + a * np.cos(t) * math.cos(ang) - b * np.sin(t) * math.sin(ang)
+    y = 360 + a * np.cos(t) * math.sin(ang) + b * np.sin(t) * math.cos(ang)
+    k = fit_ellipse(np.column_stack([x, y]))
+    f = k[0] * x * x + k[1] * x * y + k[2] * y * y + k[3] * x + k[4] * y + k[5]
+    assert np.max(np.abs(f)) / np.abs(k).max() < 1e-9
+
+
+@pytest.mark.parametrize("e_target", [0.02, 0.08, 0.2])
+def test_fit_rim_eccentricity_and_zenith(e_target: float) -> None:
+    zen = camera_zenith_from_eccentricity(e_target, 150.0, 800.0)
+    w = _rim_world(zen)
+    sc, cam = w.top_scene(), w.top_camera
+    opts = RenderOptions(gradient=(0.2, 0.1))
+    img = render_top(sc, cam, opts, np.random.default_rng(2))
+    truth = top_truth(sc, cam, opts)["rim"]
+    f = fit_rim(img, 150.0, 800.0)
+    assert f.eccentricity == pytest.approx(truth["eccentricity"], abs=0.003)
+    assert f.center_px == pytest.approx(truth["center_px"], abs=0.05)
+    assert f.axes_px == pytest.approx(truth["axes_px"], abs=0.05)
+    assert f.camera_zenith_deg == pytest.approx(zen, abs=0.15 if e_target < 0.05 else 0.05)
+    assert f.rms_px < 0.1 and f.n_points > 1000
+
+
+def test_zenith_from_ellipse_and_rectifier() -> None:
+    zen = 9.0
+    w = _rim_world(zen)
+    sc, cam = w.top_scene(), w.top_camera
+    t = top_truth(sc, cam)["rim"]
+    z, _rho = zenith_from_ellipse(t["axes_px"][0], t["axes_px"][1], cam.focal_px)
+    assert z == pytest.approx(zen, abs=0.02)  # the rim centre wobbles by 2 um
+    img = render_top(sc, cam, RenderOptions(), np.random.default_rng(4))
+    fit = fit_rim(img, 150.0, 800.0)
+    rect = PlaneRectifier.from_rim(fit, cam.focal_px, cam.principal_px, 150.0)
+    assert rect.zenith_deg == pytest.approx(zen, abs=0.05)
+    assert rect.height_mm == pytest.approx(800.0, rel=0.005)
+    plane = np.array([[0.0, 0.0, 0.0], [60.0, 0.0, 0.0], [0.0, 90.0, 0.0], [-70.0, -50.0, 0.0],
+                      [110.0, 40.0, 0.0]])
+    mm = rect.to_plane_mm(cam.project(plane))
+    # rigid up to a turn about the axis: all distances kept (the ellipse bias removed)
+    d_true = np.linalg.norm(plane[:, None, :2] - plane[None, :, :2], axis=2)
+    d_rect = np.linalg.norm(mm[:, None] - mm[None], axis=2)
+    assert np.max(np.abs(d_rect - d_true)) < 0.1
+    # the uncorrected image would be off by the foreshortening (several mm here)
+    px = cam.project(plane)[:, :2] * 0.5
+    d_img = np.linalg.norm(px[:, None] - px[None], axis=2)
+    assert np.max(np.abs(d_img - d_true)) > 0.5
+    np.testing.assert_allclose(rect.to_image_px(mm), cam.project(plane), atol=1e-6)
+    # a raised plane (the holder's top face)
+    raised = plane.copy()
+    raised[:, 2] = 30.0
+    mm30 = rect.to_plane_mm(cam.project(raised), plane_height_mm=30.0)
+    d30 = np.linalg.norm(mm30[:, None] - mm30[None], axis=2)
+    assert np.max(np.abs(d30 - d_true)) < 0.1
+
+
+def test_no_rim_raises() -> None:
+    with pytest.raises(VisionError):
+        fit_rim(np.full((720, 1280), 30, np.uint8))
+    img = np.full((720, 1280), 200, np.uint8)
+    img[200:500, 300:900] = 60  # a rectangle is not a rim
+    with pytest.raises(VisionError):
+        fit_rim(img)
