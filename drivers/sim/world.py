@@ -95,7 +95,6 @@ class SideScene:
 class World:
     """Holder pose from the stage axes; ground truth for tests and the sim's report."""
 
-    RIM_RADIUS_MM = 150.0
     HOLDER_TOP_Z_MM = 30.0
     SAMPLE_HEIGHT_MM = 50.0
 
@@ -188,7 +187,7 @@ class World:
             sample_face_mm=self.to_lab(face, z),
             target_mm=self.to_lab(self.target_tt(), z)[0],
             rim_center_mm=np.array([*self.wobble_mm(self.turntable_deg()), 0.0]),
-            rim_radius_mm=self.RIM_RADIUS_MM,
+            rim_radius_mm=self.cfg.rim_radius_mm,
             turntable_deg=self.turntable_deg(),
         )
 
