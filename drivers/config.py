@@ -93,6 +93,7 @@ class SimWorldConfig(Strict):
     axis_px: tuple[float, float] = (652.3, 347.8)
     pixel_size_um: float = 160.0
     holder_size_mm: tuple[float, float] = (60.0, 40.0)
+    rim_radius_mm: float = 150.0  # the thesis turntable; configs/sim.yaml uses a smaller one
     sample_thickness_mm: float = 5.0
     initial_offset_mm: tuple[float, float] | None = None  # None = random from seed
     initial_offset_max_mm: float = 4.0
@@ -117,3 +118,6 @@ class SimConfig(Strict):
     transport: Literal["tcp", "pty"] = "tcp"
     world: SimWorldConfig = SimWorldConfig()
     faults: list[FaultConfig] = Field(default_factory=list)
+    target_log: str | None = Field(None, description=(
+        "append every target the emulators receive as a JSON line to this file "
+        "(safety tests read it from outside the process)"))
