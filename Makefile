@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench venv
+.PHONY: demo test bench-quick venv
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -15,10 +15,16 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 # README command 1: a full closed-loop alignment on the simulated rig, with a report
+SEED ?=
 demo: $(STAMP)
-	$(BIN)/alignctl demo --config configs/sim.yaml --out out/demo
+	$(BIN)/alignctl demo --config configs/sim.yaml --out out/demo $(if $(SEED),--seed $(SEED))
 
-# README command 2: lint, the test suite, and the benchmarks in their small CI mode
+# README command 2: lint, the benchmarks in their small CI mode, the test suite (last, so
+# its summary closes the output)
 test: $(STAMP)
 	$(BIN)/ruff check alignd drivers tests bench
+	$(MAKE) --no-print-directory bench-quick
 	$(BIN)/python -m pytest
+
+bench-quick: $(STAMP)
+	@set -e; for b in bench/*.py; do echo "== $$b --quick"; $(BIN)/python $$b --quick; done
