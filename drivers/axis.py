@@ -149,6 +149,9 @@ class Axis(ABC):
         lo, hi = cfg.soft_limits.min, cfg.soft_limits.max
         here = self.position()
         reached = here
+        # unknown from the first byte of motion until the read-back is verified: a move
+        # cut off by a fault or a vanished port leaves the stage somewhere in between
+        self.position_known = False
         for attempt in range(cfg.retries + 1):
             # Arrive moving in the approach direction: if the final move would go the other
             # way (or nowhere), first go past the target by the backlash distance.

@@ -286,6 +286,9 @@ class Smc100Axis(Axis):
         self._connected = False
         self._resync = True  # drain before the next exchange (after open, timeouts, garbage)
         self._profile_sent = False
+        # Commands whose reply timed out and may still come: the ASCII protocol has no
+        # message ids, so a late reply would pass for the answer to a resent command.
+        self._late: set[str] = set()
 
     # ---- life cycle ----------------------------------------------------------------
     @property
@@ -365,9 +368,11 @@ class Smc100Axis(Axis):
                     tr.drain()
                     self._resync = False
                 data = format_command(self.address, command, arg or None)
-                self._write_bytes(before + data)
                 try:
+                    self._write_bytes(before + data)
                     value = self._read_reply(command, text)
+                    if command in self._late:
+                        value = self._newest_reply(command, text, value)
                     if convert is None:
                         return value
                     try:
@@ -377,15 +382,32 @@ class Smc100Axis(Axis):
                                             port=self.port, command=text) from exc
                 except (DeviceTimeoutError, ProtocolError) as exc:
                     self._resync = True
+                    if isinstance(exc, DeviceTimeoutError):
+                        self._late.add(command)
                     if attempt == 2 or not retry or not tr.is_open:
                         raise
                     log.warning("%s: %s; resynchronising and resending %s", self.name,
                                 exc.detail, " + ".join((before + data).decode().split()))
         raise AssertionError("unreachable")  # pragma: no cover
 
-    def _read_reply(self, command: str, text: str) -> str:
+    def _newest_reply(self, command: str, text: str, value: str) -> str:
+        """After a timed-out ``command``, the reply just read may be the late answer to the
+        earlier one. The controller answers in order, so the answer to this one follows
+        it: take the newest reply with this echo that arrives within a reply timeout."""
+        while True:
+            try:
+                newer = self._read_reply(command, text,
+                                         timeout_s=self.transport.timeout_s)
+            except DeviceTimeoutError:
+                self._late.discard(command)
+                return value
+            log.warning("%s: reply %r to %s superseded by %r (the first was late)",
+                        self.name, value, text, newer)
+            value = newer
+
+    def _read_reply(self, command: str, text: str, timeout_s: float | None = None) -> str:
         tr = self.transport
-        deadline = time.monotonic() + tr.timeout_s
+        deadline = time.monotonic() + (tr.timeout_s if timeout_s is None else timeout_s)
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:

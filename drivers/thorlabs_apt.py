@@ -542,6 +542,10 @@ class AptLink:
         # After a timed-out request its reply may still come: until then, messages already
         # waiting are read (and recorded as unsolicited) before each new request is sent.
         self._late_until = 0.0
+        # Reply ids of timed-out requests: a late one of the same id as a new request would
+        # pass for its answer (APT has no sequence numbers), so that request syncs first.
+        self._late_ids: set[int] = set()
+        self._syncing = False
 
     @property
     def url(self) -> str:
@@ -596,12 +600,15 @@ class AptLink:
         with self._lock:
             if time.monotonic() < self._late_until:
                 self.pump(command=command)
+            if reply_id in self._late_ids and not self._syncing:
+                self._sync(command)
             self.transport.write(raw, command=command)
             deadline = time.monotonic() + self.reply_timeout_s
             while True:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     self.transport.drain()
+                    self._late_ids.add(reply_id)
                     self._late_until = time.monotonic() + 10 * self.reply_timeout_s
                     raise DeviceTimeoutError(f"no {Msg(reply_id).name} reply",
                                              device=self.device, port=self.url,
@@ -609,6 +616,7 @@ class AptLink:
                 try:
                     msg = self.read_message(remaining, command)
                 except DeviceTimeoutError as exc:
+                    self._late_ids.add(reply_id)
                     self._late_until = time.monotonic() + 10 * self.reply_timeout_s
                     raise DeviceTimeoutError(
                         f"no {Msg(reply_id).name} reply within {self.reply_timeout_s:g} s",
@@ -622,6 +630,27 @@ class AptLink:
                                             command=command)
                     return msg
                 self._unsolicited(msg)
+
+    def _sync(self, command: str) -> None:
+        """Make sure no reply owed to a timed-out request is still on its way.
+
+        The controller answers in order, so once the reply to a request of another id
+        arrives, every earlier reply has arrived too (and was recorded as unsolicited).
+        """
+        if Msg.HW_GET_INFO not in self._late_ids:
+            raw, reply_id, name = (pack_short(Msg.HW_REQ_INFO, dest=self.dest),
+                                   Msg.HW_GET_INFO, "HW_REQ_INFO")
+        else:
+            raw, reply_id, name = (pack_short(Msg.MOT_REQ_STATUSBITS, 1, dest=self.dest),
+                                   Msg.MOT_GET_STATUSBITS, "MOT_REQ_STATUSBITS")
+        log.info("%s: resynchronising with %s before %s (a reply may be late)", self.device,
+                 name, command)
+        self._syncing = True
+        try:
+            self.request(raw, reply_id, f"{name} (resync before {command})")
+        finally:
+            self._syncing = False
+        self._late_ids.clear()
 
     def pump(self, timeout_s: float = 0.0, command: str = "read") -> int:
         """Read and record messages that are already waiting (or arrive within timeout)."""

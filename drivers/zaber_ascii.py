@@ -334,8 +334,10 @@ class ZaberChain:
                 timeout_s: float | None = None, retries: int = 0) -> Reply:
         """Send ``command`` to one device/axis and return its matching ``@`` reply.
 
-        ``retries`` re-sends after a corrupted reply (``ProtocolError``); only for
-        commands that are safe to repeat. Rejections (``RJ``) are returned, not raised.
+        ``retries`` re-sends after a corrupted or lost reply (``ProtocolError``,
+        ``DeviceTimeoutError``); only for commands that are safe to repeat. A late reply to
+        the first try cannot pass for the answer to the next: it carries the old message
+        id. Rejections (``RJ``) are returned, not raised.
         """
         if device == 0:
             raise ValueError("use broadcast() for device 0")
@@ -343,12 +345,12 @@ class ZaberChain:
         while True:
             try:
                 return self._exchange(device, axis, command, timeout_s)
-            except ProtocolError:
-                if attempt >= retries:
+            except (ProtocolError, DeviceTimeoutError) as exc:
+                if attempt >= retries or not self.transport.is_open:
                     raise
                 attempt += 1
-                log.warning("%s: corrupted reply to %r on device %d, retrying (%d/%d)",
-                            self.name, command, device, attempt, retries)
+                log.warning("%s: %s to %r on device %d, retrying (%d/%d)", self.name,
+                            exc.detail, command, device, attempt, retries)
 
     def _exchange(self, device: int, axis: int, command: str,
                   timeout_s: float | None) -> Reply:

@@ -30,7 +30,7 @@ from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progres
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.result import RunResult
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
-from alignd.procedures.sweep import CentrePool, Measurement, measure
+from alignd.procedures.sweep import CentrePool, Measurement, grab_fresh, measure
 from alignd.procedures.tools import Tools, default_tools
 
 log = logging.getLogger(__name__)
@@ -260,16 +260,17 @@ class _Run:
                                 f"fw {ident.firmware}")
         if self.tools is None:
             self.tools = default_tools()
+        # before anything moves: a sweep the soft limits forbid is a config error
+        tt = self.rig.axis("turntable").config.soft_limits
+        if not (tt.min <= -self.p.sweep_deg and self.p.sweep_deg <= tt.max):
+            raise ConfigError(f"procedure.sweep_deg {self.p.sweep_deg:g} exceeds the "
+                              f"turntable soft limits [{tt.min:g}, {tt.max:g}]")
         # check moves no translation stage: home only the turntable there
         roles = list(self.rig.axes) if self.mode == "align" else ["turntable"]
         self._emit("home", "homing where required")
         homed = self.rig.home_where_required(roles, abort=self.abort)
         if homed:
             self.recorder.event(f"homed: {', '.join(homed)}")
-        tt = self.rig.axis("turntable").config.soft_limits
-        if not tt.min <= -self.p.sweep_deg and self.p.sweep_deg <= tt.max:
-            raise ConfigError(f"procedure.sweep_deg {self.p.sweep_deg:g} exceeds the "
-                              f"turntable soft limits [{tt.min:g}, {tt.max:g}]")
 
     def _prechecks(self) -> None:
         pc = self.p.precheck
@@ -280,7 +281,7 @@ class _Run:
         self._emit("precheck", "looking for the holder")
         for attempt in range(HOLDER_LOOK_FRAMES):
             check_abort(self.abort)
-            det = self.tools.track(top.grab(after=time.monotonic()))
+            det = self.tools.track(grab_fresh(top, time.monotonic()))
             if det.ok:
                 break
             log.info("holder not found in top frame %d: %s", attempt + 1, det.reason)

@@ -25,7 +25,7 @@ from alignd.errors import AligndError, VisionError
 from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
-from alignd.procedures.sweep import rot
+from alignd.procedures.sweep import grab_fresh, rot
 from alignd.procedures.tools import Tools
 
 log = logging.getLogger(__name__)
@@ -139,7 +139,7 @@ def calibrate(rig: Rig, cfg: AligndConfig, tools: Tools, *, abort: threading.Eve
             check_abort(abort)
             pos = ax.position() if target is None else ax.move_to(target)
             for _ in range(frames_per_position):
-                frame = cam.grab(after=time.monotonic())
+                frame = grab_fresh(cam, time.monotonic())
                 det = tools.track(frame)
                 step_no += 1
                 recorder.frame(frame.image, f"calibration-{role}-{step_no:03d}")

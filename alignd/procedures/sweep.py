@@ -26,10 +26,24 @@ from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
 from alignd.procedures.tools import Tools
+from drivers.camera import Camera, Frame
+from drivers.errors import CameraError
 
 log = logging.getLogger(__name__)
 
 MIN_TRACKED_FRACTION = 0.6  # fewer tracked frames than this: the sweep is not used
+
+
+def grab_fresh(cam: Camera, after: float) -> Frame:
+    """A frame exposed after ``after``. A camera that hands back an older one (a stale
+    buffer, a driver bug) raises ``CameraError``: a frame from before the stage settled
+    shows the wrong pose, and no move may be based on it."""
+    frame = cam.grab(after=after)
+    if frame.timestamp < after:
+        raise CameraError(f"stale frame: exposed {after - frame.timestamp:.3f} s before it "
+                          "was asked for (before the stage settled)",
+                          device=cam.name, port=cam.source, command="grab")
+    return frame
 
 
 def rot(deg: float | np.ndarray) -> np.ndarray:
@@ -319,7 +333,7 @@ def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration
         why = ""
         for j in range(max(frames_per_step, 1)):
             t1 = time.perf_counter()
-            frame = cam.grab(after=settled)
+            frame = grab_fresh(cam, settled)
             t2 = time.perf_counter()
             det = tools.track(frame)
             t3 = time.perf_counter()
