@@ -283,6 +283,7 @@ class AptEmulator(Emulator):
         if not ax.moving:  # a new trapezoid takes the current acceleration register
             ax.p.accel = self._acc_units(c.accel, ax)
         target = (counts + c.offset) / ax.p.counts_per_unit
+        self.log_target(ax, counts / ax.p.counts_per_unit)
         c.forward = target >= ax.motor_position()
         ax.move_to(target, speed=self._vel_units(c.max_vel, ax))
         c.pending = "move"
@@ -378,6 +379,7 @@ class AptEmulator(Emulator):
                 self._start(c, round(end * ax.p.counts_per_unit) - c.offset)
             return b""
         if mid == 0x0465:  # MOVE_STOP (immediate or profiled: both end at once here)
+            self.log_stop(ax)
             ax.stop()
             c.pending = None
             c.stop_reply = True

@@ -7,10 +7,45 @@ reads it calls ``poll`` for unsolicited output (APT MOVE_COMPLETED, Zaber alerts
 
 from __future__ import annotations
 
+import json
+import os
+import threading
+import time
 from abc import ABC, abstractmethod
+from pathlib import Path
 
 from drivers.sim.clock import Clock
 from drivers.sim.kinematics import SimAxis
+
+
+class TargetLog:
+    """Every target an emulated controller receives, as JSON lines in a file.
+
+    Why a file: the safety tests check, from outside the daemon process (and after a
+    SIGKILL), that no target outside the soft limits ever reached a controller. One line is
+    one ``os.write`` on an ``O_APPEND`` descriptor, so lines from several emulators (and
+    successive daemons) never interleave. Targets are in the controller's own units (mm or
+    deg, the values the host sent); ``accepted`` is False for a move the firmware refused.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND,
+                                       0o644)
+        self._lock = threading.Lock()
+
+    def write(self, **record: object) -> None:
+        line = json.dumps({"t": time.time(), "pid": os.getpid(), **record},
+                          allow_nan=True) + "\n"
+        with self._lock:
+            if self._fd is not None:
+                os.write(self._fd, line.encode())
+
+    def close(self) -> None:
+        with self._lock:
+            fd, self._fd = self._fd, None
+        if fd is not None:
+            os.close(fd)
 
 
 class Emulator(ABC):
@@ -25,6 +60,20 @@ class Emulator(ABC):
         self.axes = axes
         self.clock = clock
         self.commands_seen = 0  # complete commands parsed so far (fault injection counts)
+        self.target_log: TargetLog | None = None  # set by the rig when configured
+
+    def log_target(self, axis: SimAxis, target: float, *, accepted: bool = True,
+                   command: str = "move") -> None:
+        """Note a target this controller received (a no-op unless a log is attached)."""
+        if self.target_log is not None:
+            self.target_log.write(event="target", device=self.name, axis=axis.name,
+                                  target=float(target), accepted=accepted, command=command)
+
+    def log_stop(self, axis: SimAxis) -> None:
+        """Note a stop command (the tests check every axis was told to stop after a fault)."""
+        if self.target_log is not None:
+            self.target_log.write(event="stop", device=self.name, axis=axis.name,
+                                  position=axis.motor_position())
 
     @abstractmethod
     def handle(self, data: bytes) -> bytes:

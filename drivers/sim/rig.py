@@ -16,7 +16,7 @@ import numpy as np
 
 from drivers.config import AxisConfig, CameraConfig, ControllerConfig, SimConfig
 from drivers.sim.clock import Clock, ScaledClock
-from drivers.sim.emulator import Emulator
+from drivers.sim.emulator import Emulator, TargetLog
 from drivers.sim.kinematics import AxisPhysics, SimAxis
 from drivers.sim.server import EmulatorServer
 from drivers.sim.world import World
@@ -79,9 +79,14 @@ class SimRig:
         self.lock = threading.Lock()
         self.camera_configs = {c.role: c for c in cameras if c.source == "sim"}
         self.servers: dict[str, EmulatorServer] = {}
+        self.target_log: TargetLog | None = None
         self._camera_seed = int(streams[3].integers(2**31))
 
     def start(self) -> Self:
+        if self.sim.target_log and self.target_log is None:
+            self.target_log = TargetLog(self.sim.target_log)
+            for emu in self.emulators.values():
+                emu.target_log = self.target_log
         for i, (name, emu) in enumerate(self.emulators.items()):
             srv = EmulatorServer(emu, self.transport, faults=list(self.sim.faults),
                                  seed=self.seed + i)
@@ -92,6 +97,14 @@ class SimRig:
         for srv in self.servers.values():
             srv.stop()
         self.servers.clear()
+        if self.target_log is not None:  # where every axis was left, and whether it moves
+            for role, ax in self.axes.items():
+                self.target_log.write(event="final", axis=role, moving=ax.moving,
+                                      position=ax.motor_position(), homed=ax.homed)
+            self.target_log.close()
+            self.target_log = None
+            for emu in self.emulators.values():
+                emu.target_log = None
 
     def __enter__(self) -> Self:
         return self.start()

@@ -425,6 +425,8 @@ class Smc100Emulator(Emulator):
 
     # motion -------------------------------------------------------------------------
     def _move(self, c: _Controller, target: float) -> None:
+        ok = (c.state in READY_STATES or c.state == MOVING) and c.sl <= target <= c.sr
+        self.log_target(c.axis, target, accepted=ok)
         if c.state not in READY_STATES and c.state != MOVING:
             c.error = self._not_allowed(c.state)
             return
@@ -455,6 +457,7 @@ class Smc100Emulator(Emulator):
         return None
 
     def _cmd_st(self, c: _Controller, arg: str) -> str | None:
+        self.log_stop(c.axis)
         if c.state == MOVING:
             c.axis.stop()
             c.target = c.axis.motor_position()

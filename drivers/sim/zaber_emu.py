@@ -288,6 +288,7 @@ class ZaberEmulator(Emulator):
         if cmd == "move" and args:
             return self._move(dev, args)
         if cmd in ("stop", "estop") and not args:
+            self.log_stop(dev.axis)
             if dev.axis.moving or dev.homing:
                 dev.latched.add("NI")
             dev.axis.stop()
@@ -323,11 +324,11 @@ class ZaberEmulator(Emulator):
             absolute = kind == "abs"
         else:
             return False, "BADCOMMAND"
-        if absolute and dev.reference == "none":
-            return False, "BADDATA"
         lo, hi = dev.limit_min, dev.limit_max
         eps = 0.5 / dev.steps_per_mm
-        if not lo - eps <= target <= hi + eps:
+        ok = not (absolute and dev.reference == "none") and lo - eps <= target <= hi + eps
+        self.log_target(dev.axis, target, accepted=ok, command=f"move {kind}")
+        if not ok:
             return False, "BADDATA"
         self._start_motion(dev)
         dev.homing = False
