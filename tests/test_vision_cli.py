@@ -57,6 +57,8 @@ def test_top_json_fields(images, capsys) -> None:
         assert np.max(np.abs(np.asarray(o["corners_px"]) - t)) < 0.06
         assert set(o["pose"]) == {"center_px", "angle_deg"}
         assert 0.8 < o["quality"] <= 1.0
+        # the sample face's yaw from the turntable zero (angle taken from the file name)
+        assert o["sample_yaw_deg"] == pytest.approx(1.5, abs=0.05)
 
 
 def test_top_sweep_file_round_trips_through_the_solver_reader(images, tmp_path, capsys) -> None:

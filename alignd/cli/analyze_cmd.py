@@ -43,6 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--polarity", choices=["dark", "light"],
                    help="holder darker or lighter than its surroundings (default: either)")
     g.add_argument("--sweep-out", metavar="FILE", help="write the series as a sweep file")
+    g.add_argument("--turntable-deg", type=float, default=None,
+                   help="turntable angle for the sample yaw (default: from the file name, else 0)")
     g.add_argument("--angles", metavar="A,B,...", type=_floats,
                    help="turntable angle (deg) of each image, in order (else from file names)")
     g.add_argument("--pixel-size-um", type=float, help="pixel size for the sweep file")
@@ -107,7 +109,7 @@ def _analyze_one(kind: str, name: str, args: argparse.Namespace,
     """JSON object, human line, and (top) the corners for the sweep; raises on failure."""
     img = read_image(name)
     if kind == "top":
-        from alignd.vision.holder import order_corners, track_holder
+        from alignd.vision.holder import measure_yaw, order_corners, track_holder
         from alignd.vision.lens import Lens
         lens = None
         if args.k1:
@@ -122,10 +124,15 @@ def _analyze_one(kind: str, name: str, args: argparse.Namespace,
         corners = order_corners(det.corners_px, prev) if prev is not None else det.corners_px
         obj = det.to_json()
         obj["corners_px"] = [[float(x), float(y)] for x, y in corners]
+        turn = args.turntable_deg if args.turntable_deg is not None else (
+            _angle_from_name(name) or 0.0)
+        yaw = measure_yaw(img, det, turntable_deg=turn)
+        obj["sample_yaw_deg"] = yaw.yaw_deg if yaw.ok else None
         line = (f"centre ({_fmt(det.center_px[0])}, {_fmt(det.center_px[1])}) px  angle "
                 f"{det.angle_deg:+.4f} deg  quality {det.quality:.3f}  corner sigma "
-                f"{det.corner_sigma_px:.4f} px  corners "
-                + " ".join(f"({x:.3f}, {y:.3f})" for x, y in corners))
+                f"{det.corner_sigma_px:.4f} px  sample yaw "
+                + (f"{yaw.yaw_deg:+.4f} deg" if yaw.ok else f"- ({yaw.reason})")
+                + "  corners " + " ".join(f"({x:.3f}, {y:.3f})" for x, y in corners))
         return obj, line, corners
     if kind == "side":
         from alignd.vision.side import measure_tilt
