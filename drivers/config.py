@@ -115,7 +115,7 @@ class SimConfig(Strict):
 
     seed: int = 1
     time_scale: float = Field(20.0, gt=0)
-    transport: Literal["tcp", "pty"] = "tcp"
+    transport: Literal["tcp", "pty", "both"] = "tcp"
     world: SimWorldConfig = SimWorldConfig()
     faults: list[FaultConfig] = Field(default_factory=list)
     target_log: str | None = Field(None, description=(

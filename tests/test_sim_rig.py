@@ -30,7 +30,8 @@ def test_alignd_sim_prints_endpoints_serves_and_stops_on_sigterm() -> None:
         assert [ep["device"] for ep in lines] == ["turntable", "translator", "platform"]
         assert [ep["protocol"] for ep in lines] == ["smc100", "apt", "zaber"]
         assert all(ep["url"].startswith("socket://127.0.0.1:") for ep in lines)
-        ctl = load_config(SIM).controllers[0].model_copy(update={"port": lines[0]["url"]})
+        assert all(ep["pty"].startswith("/dev/pts/") for ep in lines)  # both, by default
+        ctl = load_config(SIM).controllers[0].model_copy(update={"port": lines[0]["pty"]})
         (tt,) = smc100_axes(ctl, time_scale=50)
         with tt:
             assert tt.identify().model.startswith("SMC100")

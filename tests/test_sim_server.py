@@ -124,3 +124,15 @@ def test_stall_fault_freezes_the_axis_while_it_reports_moving() -> None:
         clock.advance(2.0)
         assert emu.axes[1].moving
         assert emu.axes[1].motor_position() == first
+
+
+def test_both_serves_a_pty_and_tcp_and_answers_whoever_asked() -> None:
+    emu, _ = make_emulator()
+    with EmulatorServer(emu, "both") as srv:
+        ep = srv.endpoint()
+        assert ep["url"].startswith("socket://127.0.0.1:") and ep["pty"].startswith("/dev/pts/")
+        with serial.serial_for_url(ep["url"], timeout=1.0) as tcp, \
+                serial.serial_for_url(ep["pty"], timeout=1.0) as pty:
+            assert exchange(tcp, b"via tcp") == b"ECHO via tcp\n"
+            assert exchange(pty, b"via pty") == b"ECHO via pty\n"
+            assert exchange(tcp, b"POS?") == b"10.000\n"

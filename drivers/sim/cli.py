@@ -48,7 +48,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="alignd-sim", description=__doc__)
     ap.add_argument("--config", required=True, help="instrument config (YAML)")
     ap.add_argument("--seed", type=int, default=None, help="seed of the simulated world")
-    ap.add_argument("--transport", choices=["tcp", "pty"], default=None)
+    ap.add_argument("--transport", choices=["tcp", "pty", "both"], default="both",
+                    help="serve each device on a loopback TCP port, a pty, or both "
+                    "(default both)")
     ap.add_argument("--time-scale", type=float, default=None,
                     help="simulated seconds per wall second")
     ap.add_argument("-v", "--verbose", action="count", default=0)

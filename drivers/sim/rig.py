@@ -49,7 +49,7 @@ class SimRig:
 
     def __init__(self, controllers: list[ControllerConfig], cameras: list[CameraConfig],
                  sim: SimConfig, *, seed: int | None = None, clock: Clock | None = None,
-                 transport: Literal["tcp", "pty"] | None = None) -> None:
+                 transport: Literal["tcp", "pty", "both"] | None = None) -> None:
         self.sim = sim
         self.seed = sim.seed if seed is None else seed
         self.clock = clock or ScaledClock(sim.time_scale)

@@ -28,7 +28,7 @@ from drivers.sim.emulator import Emulator
 
 log = logging.getLogger(__name__)
 
-Mode = Literal["tcp", "pty"]
+Mode = Literal["tcp", "pty", "both"]
 WIRE_FAULTS = {"no_reply", "truncated", "garbled", "bad_checksum", "slow_reply", "late_reply"}
 
 
@@ -127,11 +127,12 @@ class EmulatorServer:
         self._master: int | None = None
         self._slave: int | None = None
         self._pending: list[tuple[float, bytes]] = []
+        self._from_tcp = mode == "tcp"  # where the last command came from
         self.lock = threading.Lock()  # held while the emulator state changes
 
     # ---- life cycle --------------------------------------------------------------
     def start(self) -> Self:
-        if self.mode == "tcp":
+        if self.mode in ("tcp", "both"):
             lst = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             lst.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             lst.bind((self.host, self.port))
@@ -139,12 +140,12 @@ class EmulatorServer:
             self._listener = lst
             self.port = lst.getsockname()[1]
             self.url = f"socket://{self.host}:{self.port}"
-        else:
+        if self.mode in ("pty", "both"):
             master, slave = os.openpty()
             tty.setraw(slave)
             self._master, self._slave = master, slave  # keep the slave open: no EIO on master
             self.pty_path = os.ttyname(slave)
-            self.url = self.pty_path
+            self.url = self.url or self.pty_path
         self._thread = threading.Thread(target=self._run, name=f"sim-{self.emulator.name}",
                                         daemon=True)
         self._thread.start()
@@ -166,8 +167,9 @@ class EmulatorServer:
 
     def endpoint(self) -> dict[str, str | None]:
         """The endpoint line of the design notes (one JSON object per device)."""
+        tcp = f"socket://{self.host}:{self.port}" if self.mode != "pty" else None
         return {"device": self.emulator.name, "protocol": self.emulator.protocol,
-                "url": self.url if self.mode == "tcp" else None, "pty": self.pty_path}
+                "url": tcp, "pty": self.pty_path}
 
     # ---- the loop ----------------------------------------------------------------
     def _drop_connection(self) -> None:
@@ -204,10 +206,11 @@ class EmulatorServer:
         return fds
 
     def _send(self, data: bytes) -> None:
+        """To the host that spoke last (serving both a pty and TCP, either may be it)."""
         if not data:
             return
         try:
-            if self._client is not None:
+            if self._client is not None and (self._from_tcp or self._master is None):
                 self._client.sendall(data)
             elif self._master is not None:
                 os.write(self._master, data)
@@ -236,6 +239,7 @@ class EmulatorServer:
                     continue
                 data = self._recv(fd)
                 if data:
+                    self._from_tcp = isinstance(fd, socket.socket)
                     self._feed(data)
             self._tick()
 
