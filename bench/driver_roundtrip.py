@@ -1,7 +1,9 @@
 """Command round-trip time and polling rate per protocol, driver against emulator.
 
 Runs the reference rig's emulators on real pseudo-terminals (and loopback TCP), connects
-the real drivers, and times ``position()`` and ``status()`` round trips.
+the real drivers, and times ``position()`` and ``status()`` round trips: once as fast as
+the software allows ("free"), once with the emulators pacing the bytes at the real
+controllers' baud rates ("paced": what to expect on hardware, device latency aside).
 
     python bench/drivers.py [--quick] [--n 500]
 """
@@ -42,8 +44,9 @@ def main() -> int:
     n = 30 if args.quick else args.n
     cfg = load_config(args.config)
     rows = []
-    for transport in ("pty", "tcp"):
-        with SimRig(cfg.controllers, [], cfg.sim, seed=1, transport=transport) as rig:
+    for pace, transport in ((False, "pty"), (False, "tcp"), (True, "pty")):
+        sim = cfg.sim.model_copy(update={"pace_serial": pace})
+        with SimRig(cfg.controllers, [], sim, seed=1, transport=transport) as rig:
             for ctl in cfg.controllers:
                 url_ctl = ctl.model_copy(update={"port": rig.url(ctl.name)})
                 module = importlib.import_module(DRIVERS[ctl.protocol])
@@ -53,12 +56,13 @@ def main() -> int:
                     for what, fn in (("position", ax.position), ("status", ax.status)):
                         ms = time_calls(fn, n)
                         p95 = sorted(ms)[int(0.95 * (len(ms) - 1))]
-                        rows.append((ctl.protocol, transport, what, statistics.median(ms), p95,
+                        link = f"{transport}/{'paced' if pace else 'free'}"
+                        rows.append((ctl.protocol, link, what, statistics.median(ms), p95,
                                      1000.0 / statistics.mean(ms)))
     print(f"driver round trips against the emulators ({n} calls each)")
-    print(f"{'protocol':<9}{'link':<6}{'call':<10}{'median ms':>11}{'p95 ms':>9}{'polls/s':>9}")
+    print(f"{'protocol':<9}{'link':<11}{'call':<10}{'median ms':>11}{'p95 ms':>9}{'polls/s':>9}")
     for proto, link, what, med, p95, rate in rows:
-        print(f"{proto:<9}{link:<6}{what:<10}{med:>11.3f}{p95:>9.3f}{rate:>9.0f}")
+        print(f"{proto:<9}{link:<11}{what:<10}{med:>11.3f}{p95:>9.3f}{rate:>9.0f}")
     return 0
 
 

@@ -116,6 +116,9 @@ class SimConfig(Strict):
     seed: int = 1
     time_scale: float = Field(20.0, gt=0)
     transport: Literal["tcp", "pty", "both"] = "tcp"
+    pace_serial: bool = Field(False, description=(
+        "emulators take as long as the bytes take at the real baud rate (realistic round "
+        "trips; slower)"))
     world: SimWorldConfig = SimWorldConfig()
     faults: list[FaultConfig] = Field(default_factory=list)
     target_log: str | None = Field(None, description=(

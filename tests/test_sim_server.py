@@ -136,3 +136,14 @@ def test_both_serves_a_pty_and_tcp_and_answers_whoever_asked() -> None:
             assert exchange(tcp, b"via tcp") == b"ECHO via tcp\n"
             assert exchange(pty, b"via pty") == b"ECHO via pty\n"
             assert exchange(tcp, b"POS?") == b"10.000\n"
+
+
+def test_pacing_takes_the_time_the_bytes_take_on_the_line() -> None:
+    emu, _ = make_emulator()
+    emu.baudrate = 9600  # 10 bits a byte: ~1.04 ms per byte
+    with EmulatorServer(emu, "tcp", pace_serial=True) as srv, \
+            serial.serial_for_url(srv.url, timeout=2.0) as port:
+        t0 = time.monotonic()
+        assert exchange(port, b"0123456789") == b"ECHO 0123456789\n"
+        # 11 bytes in + 16 bytes out at 9600 baud: at least 28 ms (a lower bound only)
+        assert time.monotonic() - t0 >= 27 * 10 / 9600

@@ -142,6 +142,7 @@ class AptEmulator(Emulator):
     """A KDC101 (default) or K10CR1 on one USB serial port; ``axes`` maps channel -> axis."""
 
     protocol = "apt"
+    baudrate = 115200  # the real controller's line: 8N1 RTS/CTS
 
     def __init__(self, name: str, axes: dict[int, SimAxis], clock: Clock, *,
                  model: str | None = None, stage: str | None = None,

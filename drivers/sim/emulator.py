@@ -52,6 +52,7 @@ class Emulator(ABC):
     """Emulated controller firmware behind one serial port."""
 
     protocol: str = ""
+    baudrate: int = 0  # the real device's line rate (paces the bytes when asked to)
 
     def __init__(self, name: str, axes: dict[int, SimAxis], clock: Clock) -> None:
         """``axes`` maps the protocol's address (SMC100 address, Zaber device number,

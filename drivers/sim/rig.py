@@ -89,6 +89,7 @@ class SimRig:
                 emu.target_log = self.target_log
         for i, (name, emu) in enumerate(self.emulators.items()):
             srv = EmulatorServer(emu, self.transport, faults=list(self.sim.faults),
+                                 pace_serial=self.sim.pace_serial,
                                  seed=self.seed + i)
             self.servers[name] = srv.start()
         return self

@@ -110,13 +110,17 @@ class EmulatorServer:
 
     def __init__(self, emulator: Emulator, mode: Mode = "tcp", *,
                  faults: list[FaultConfig] | None = None, host: str = "127.0.0.1",
-                 port: int = 0, seed: int = 0, poll_interval_s: float = 0.002) -> None:
+                 port: int = 0, seed: int = 0, poll_interval_s: float = 0.002,
+                 pace_serial: bool = False) -> None:
+        """``pace_serial``: take as long as the bytes take on the real serial line (10 bits
+        a byte at the emulator's baud rate), both ways, so round trips are realistic."""
         self.emulator = emulator
         self.mode = mode
         self.faults = FaultInjector([f for f in (faults or []) if f.device == emulator.name],
                                     seed)
         self.host, self.port = host, port
         self.poll_interval_s = poll_interval_s
+        self.byte_time_s = 10.0 / emulator.baudrate if pace_serial and emulator.baudrate else 0.0
         self.url = ""
         self.pty_path: str | None = None
         self.disconnected = False
@@ -209,6 +213,8 @@ class EmulatorServer:
         """To the host that spoke last (serving both a pty and TCP, either may be it)."""
         if not data:
             return
+        if self.byte_time_s:
+            time.sleep(len(data) * self.byte_time_s)
         try:
             if self._client is not None and (self._from_tcp or self._master is None):
                 self._client.sendall(data)
@@ -259,6 +265,8 @@ class EmulatorServer:
             return b""
 
     def _feed(self, data: bytes) -> None:
+        if self.byte_time_s:  # the command's bytes arrive at the line rate
+            time.sleep(len(data) * self.byte_time_s)
         with self.lock:
             reply = self.emulator.handle(data)
         if reply:

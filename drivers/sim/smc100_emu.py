@@ -168,6 +168,7 @@ class Smc100Emulator(Emulator):
     """One or more SMC100 controllers behind one serial port (RS-232 master + RS-485)."""
 
     protocol = "smc100"
+    baudrate = 57600  # the real controller's line: 8N1 XON/XOFF
     HOMING_TIMEOUT_S = 60.0  # the manual's OT default: longest homing before bit 0x0040
 
     def __init__(self, name: str, axes: dict[int, SimAxis], clock: Clock,

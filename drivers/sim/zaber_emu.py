@@ -120,6 +120,7 @@ class ZaberEmulator(Emulator):
     """A chain of X-LSM devices; ``axes`` maps device number -> the stage it drives."""
 
     protocol = "zaber"
+    baudrate = 115200  # the real controller's line: 8N1
 
     def __init__(self, name: str, axes: dict[int, SimAxis], clock: Clock, *,
                  models: dict[int, str] | None = None, serial_base: int = 91301) -> None:
