@@ -20,7 +20,12 @@ EXIT_OK, EXIT_OUT_OF_TOLERANCE, EXIT_USAGE, EXIT_FAULT = 0, 1, 2, 3
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="alignctl", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="alignctl",
+        description="alignd's command line: offline analysis (solve, analyze), the daemon's "
+        "controls (status, align, check, abort, reset, history, report) and the demo.",
+        epilog="exit codes: 0 ok / within tolerance, 1 out of tolerance or not converged, "
+        "2 usage or config error, 3 hardware or daemon fault")
     parser.add_argument("--version", action="version", version=f"alignctl {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more log output (-vv for wire traffic)")
