@@ -6,6 +6,7 @@ A bad config fails at load with the file, the key path and the reason (``ConfigE
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
 
@@ -60,6 +61,10 @@ class DaemonConfig(Strict):
     socket: str = "/run/alignd/alignd.sock"
     operator_group: str | None = "alignd-operators"
     watchdog: bool = True
+    keep_frames: Literal["all", "report", "none"] = Field("all", description=(
+        "which camera frames are kept as PNG files: all (the raw data, tens of MB a run), "
+        "report (the frame nearest 0 deg of every sweep, which the report draws on) or "
+        "none; every frame's hash and features are recorded in the database either way"))
 
 
 class AligndConfig(Strict):
@@ -101,6 +106,27 @@ class AligndConfig(Strict):
 
     def camera(self, role: str) -> CameraConfig | None:
         return next((c for c in self.cameras if c.role == role), None)
+
+
+def frame_keeper(cfg: AligndConfig) -> Callable[[str], bool]:
+    """Whether a frame (by its recorder label) is kept as a file, per ``daemon.keep_frames``.
+
+    Sweep frames are labelled ``<kind>-<iteration>-<step>[-<n>]``; "report" keeps, of every
+    sweep, the first frame at the step nearest 0 deg (the one the report draws on)."""
+    mode = cfg.daemon.keep_frames
+    if mode != "report":
+        return lambda _label: mode == "all"
+    p = cfg.procedure
+    angles = [-p.sweep_deg + i * 2 * p.sweep_deg / (p.sweep_steps - 1)
+              for i in range(p.sweep_steps)]
+    mid = min(range(p.sweep_steps), key=lambda i: abs(angles[i]))
+
+    def keep(label: str) -> bool:
+        parts = label.split("-")
+        return (len(parts) >= 3 and parts[1].isdigit() and parts[2].isdigit()
+                and int(parts[2]) == mid and (len(parts) < 4 or parts[3] == "0"))
+
+    return keep
 
 
 def _key_path(loc: tuple[object, ...]) -> str:

@@ -40,7 +40,7 @@ from typing import Any
 from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
 from alignd.client import resolve_socket
-from alignd.config import AligndConfig, config_hash, load_config
+from alignd.config import AligndConfig, config_hash, frame_keeper, load_config
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
 
@@ -304,6 +304,7 @@ class Daemon:
         assert job.run_id is not None
         run_id = job.run_id
         recorder = SqliteRecorder(self.store, run_id, on_write=self.notifier.watchdog,
+                                  keep_frame=frame_keeper(self.cfg),
                                   on_event=lambda msg, level: self._emit(
                                       run_id, {"type": "event", "level": level, "msg": msg}))
         self._emit(run_id, {"type": "state", "msg": f"{job.kind} started (run {run_id}, "

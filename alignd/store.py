@@ -403,14 +403,15 @@ class Store:
     def frame_path(self, digest: str) -> Path:
         return self.frames_dir / digest[:2] / f"{digest}.png"
 
-    def save_frame(self, run_id: int, image: np.ndarray, label: str) -> str:
+    def save_frame(self, run_id: int, image: np.ndarray, label: str,
+                   keep_file: bool = True) -> str:
         """Store a frame as ``frames/ab/abcd....png`` and return its hash (SHA-256 of shape,
         dtype and pixels: ``image_hash``, the name every recorder gives a frame, so it does
         not depend on the PNG encoder). The file is durable before the row naming it."""
         digest = image_hash(image)
         path = self.frame_path(digest)
         try:
-            if not path.exists():
+            if keep_file and not path.exists():
                 path.parent.mkdir(parents=True, exist_ok=True)
                 atomic_write_bytes(path, encode_png(image))
         except OSError as exc:
@@ -495,9 +496,13 @@ class SqliteRecorder:
     """
 
     def __init__(self, store: Store, run_id: int, *,
-                 on_event: Any = None, on_write: Any = None) -> None:
+                 on_event: Any = None, on_write: Any = None,
+                 keep_frame: Any = None) -> None:
+        """``keep_frame(label) -> bool``: which frames are stored as files (default all;
+        the hash of every frame is recorded regardless)."""
         self.store = store
         self.run_id = run_id
+        self._keep_frame = keep_frame
         self._on_event = on_event
         self._on_write = on_write
 
@@ -518,7 +523,8 @@ class SqliteRecorder:
 
     def frame(self, image: Any, label: str) -> str:
         arr = getattr(image, "image", image)  # a drivers.camera.Frame or a bare array
-        digest = self.store.save_frame(self.run_id, np.asarray(arr), label)
+        keep = self._keep_frame is None or bool(self._keep_frame(label))
+        digest = self.store.save_frame(self.run_id, np.asarray(arr), label, keep_file=keep)
         self._touched()
         return digest
 
