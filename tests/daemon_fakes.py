@@ -207,3 +207,35 @@ def run_fake_daemon(argv: list[str], mode: str) -> int:
 
 if __name__ == "__main__":
     sys.exit(run_fake_daemon(sys.argv[2:], sys.argv[1]))
+
+
+OBSERVER_SCRIPT = r"""
+import json, socket, sys
+def req(method, path, body=""):
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(5)
+    s.connect(sys.argv[1])
+    data = body.encode()
+    s.sendall(f"{method} {path} HTTP/1.1\r\nHost: x\r\nContent-Length: {len(data)}\r\n\r\n"
+              .encode() + data)
+    out = b""
+    while chunk := s.recv(65536):
+        out += chunk
+    return int(out.split(b" ")[1]), json.loads(out.split(b"\r\n\r\n", 1)[1])
+print(json.dumps([req(*r) for r in json.loads(sys.argv[2])]))
+"""
+
+
+def as_observer(sock: object, requests: list[tuple[str, str, str]]) -> list[list[object]]:
+    """Send ``requests`` to the daemon from a process running as ``nobody`` (uid 65534):
+    an observer, not in any operator group. Returns ``[[status, reply], ...]``."""
+    import json as _json
+    import shutil as _shutil
+    import subprocess as _subprocess
+
+    python = _shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
+    out = _subprocess.run([python, "-c", OBSERVER_SCRIPT, str(sock), _json.dumps(requests)],
+                          user=65534, group=65534, extra_groups=[], capture_output=True,
+                          text=True, timeout=20, cwd="/")
+    assert out.returncode == 0, out.stderr
+    return _json.loads(out.stdout)

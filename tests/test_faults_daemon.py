@@ -21,6 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from daemon_fakes import as_observer
 from faults_support import (
     DaemonProc,
     assert_end_state,
@@ -221,21 +222,6 @@ def test_full_disk_refuses_new_runs_and_nothing_moves(busy_daemon: DaemonProc,
     assert_end_state(dp, run, verdicts=["within_tolerance", "out_of_tolerance"])
 
 
-_OBSERVER = r"""
-import json, socket, sys
-def req(method, path, body=b""):
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    s.settimeout(5)
-    s.connect(sys.argv[1])
-    s.sendall(f"{method} {path} HTTP/1.1\r\nHost: x\r\nContent-Length: {len(body)}\r\n\r\n"
-              .encode() + body)
-    out = b""
-    while chunk := s.recv(65536):
-        out += chunk
-    return int(out.split(b" ")[1]), json.loads(out.split(b"\r\n\r\n", 1)[1])
-print(json.dumps([req("GET", "/status"), req("POST", "/align", b"{}"),
-                  req("POST", "/abort", b"{}"), req("POST", "/reset", b"{}")]))
-"""
 
 
 def test_second_align_and_observer_control_are_refused_status_works(
@@ -249,12 +235,9 @@ def test_second_align_and_observer_control_are_refused_status_works(
     assert alignctl(["--socket", str(dp.sock), "align"]) == 3
     assert f"busy: run {run_id}" in capsys.readouterr().err
     if os.getuid() == 0:  # the observer is a real other user
-        python = shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
-        out = subprocess.run([python, "-c", _OBSERVER, str(dp.sock)], user=65534, group=65534,
-                             extra_groups=[], capture_output=True, text=True, timeout=20,
-                             cwd="/")
-        assert out.returncode == 0, out.stderr
-        (s_code, st), (a_code, a), (x_code, x), (r_code, r) = json.loads(out.stdout)
+        (s_code, st), (a_code, a), (x_code, x), (r_code, r) = as_observer(
+            dp.sock, [("GET", "/status", ""), ("POST", "/align", "{}"),
+                      ("POST", "/abort", "{}"), ("POST", "/reset", "{}")])
         assert s_code == 200 and st["state"] == "aligning" and st["run_id"] == run_id
         assert (a_code, x_code, r_code) == (403, 403, 403)
         assert a["error"] == x["error"] == r["error"] == "forbidden"
