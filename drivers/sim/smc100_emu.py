@@ -164,6 +164,9 @@ class _Controller:
     homing_deadline: float = math.inf
 
 
+_QUERY_ONLY = frozenset({"TS", "TE", "TP", "TH", "VE"})  # take no parameter
+
+
 class Smc100Emulator(Emulator):
     """One or more SMC100 controllers behind one serial port (RS-232 master + RS-485)."""
 
@@ -305,6 +308,9 @@ class Smc100Emulator(Emulator):
         if handler is None:
             c.error = "A"
             return b""
+        if cmd.upper() in _QUERY_ONLY and arg not in ("", "?"):
+            c.error = "C"  # a query-only command given a parameter
+            return b""
         reply: str | None = handler(c, arg)
         if reply is None:
             return b""
@@ -322,15 +328,9 @@ class Smc100Emulator(Emulator):
 
     # queries ----------------------------------------------------------------------
     def _cmd_ts(self, c: _Controller, arg: str) -> str | None:
-        if arg not in ("", "?"):
-            c.error = "C"
-            return None
         return f"{self._errors(c):04X}{c.state:02X}"
 
     def _cmd_te(self, c: _Controller, arg: str) -> str | None:
-        if arg not in ("", "?"):
-            c.error = "C"
-            return None
         letter, c.error = c.error, "@"
         return letter
 
@@ -344,21 +344,12 @@ class Smc100Emulator(Emulator):
         return f"{letter} {ERROR_TEXT[letter]}"
 
     def _cmd_tp(self, c: _Controller, arg: str) -> str | None:
-        if arg not in ("", "?"):
-            c.error = "C"
-            return None
         return _fmt(c.axis.encoder_position())
 
     def _cmd_th(self, c: _Controller, arg: str) -> str | None:
-        if arg not in ("", "?"):
-            c.error = "C"
-            return None
         return _fmt(c.target)
 
     def _cmd_ve(self, c: _Controller, arg: str) -> str | None:
-        if arg not in ("", "?"):
-            c.error = "C"
-            return None
         return f" {self.firmware}"
 
     def _cmd_id(self, c: _Controller, arg: str) -> str | None:
