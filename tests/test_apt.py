@@ -701,9 +701,9 @@ def test_unsolicited_updates_interleave_with_replies_over_port(mode: str) -> Non
 
 
 def test_garbled_reply_over_port_then_resync() -> None:
-    # let connect through (HW_GET_INFO, enable state, velocity, status), garble one reply
+    # connect asks HW_REQ_INFO once; the reply to the second one (identify) is garbled
     srv, _, make = served("tcp", [FaultConfig(device="translator", kind="garbled",
-                                              after_commands=4, count=1)])
+                                              on="0x0005", nth=2)])
     with srv, make() as axis:
         # (seeded: this garbling hits the header; APT has no checksum to catch data bytes)
         with pytest.raises(ProtocolError, match="bad APT header"):
@@ -714,7 +714,7 @@ def test_garbled_reply_over_port_then_resync() -> None:
 
 def test_no_reply_over_port_times_out_and_recovers() -> None:
     srv, _, make = served("pty", [FaultConfig(device="translator", kind="no_reply",
-                                              after_commands=4, count=1)])
+                                              on="0x0411")])  # MOT_REQ_POSCOUNTER
     with srv, make() as axis:
         with pytest.raises(DeviceTimeoutError, match="MOT_GET_POSCOUNTER"):
             axis.position()
@@ -723,20 +723,23 @@ def test_no_reply_over_port_times_out_and_recovers() -> None:
 
 def test_late_reply_is_not_taken_for_the_next_one() -> None:
     srv, _, make = served("tcp", [FaultConfig(device="translator", kind="slow_reply",
-                                              after_commands=4, count=1, delay_s=0.8)])
+                                              on="0x0411", delay_s=0.8)])
     with srv, make() as axis:
         with pytest.raises(DeviceTimeoutError, match="MOT_GET_POSCOUNTER"):
             axis.position()  # the reply (0 counts) is on its way, late
         axis.link.send(pack_data(Msg.MOT_SET_POSCOUNTER, pack_move(1, 34304)),
                        "MOT_SET_POSCOUNTER")
-        time.sleep(0.5)  # the late reply has arrived by now
+        deadline = time.monotonic() + 30  # an event, not a guess: the late reply is out
+        while srv.pending_replies() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not srv.pending_replies()
         assert axis.position() == pytest.approx(1.0)
 
 
 def test_disconnect_mid_homing_ends_in_transport_error() -> None:
-    # connect sends 7 commands; the port vanishes once the stage moves after that
+    # the port vanishes as soon as the controller has taken MOT_MOVE_HOME
     srv, _, make = served("tcp", [FaultConfig(device="translator", kind="disconnect",
-                                                after_commands=7)], scale=5.0)
+                                                on="0x0443")], scale=5.0)
     with srv, make() as axis:
         t0 = time.monotonic()
         with pytest.raises(TransportError):

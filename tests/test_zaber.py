@@ -554,7 +554,7 @@ def test_wire_faults_end_in_the_documented_error_then_the_link_recovers(
 @pytest.mark.parametrize("mode", ["pty", "tcp"])
 def test_disconnect_mid_move_is_a_transport_error(mode: str) -> None:
     emu, clock, sim = make_chain(1)
-    fault = FaultConfig(device="platform", kind="disconnect", after_commands=1)
+    fault = FaultConfig(device="platform", kind="disconnect", on="move abs")
     with EmulatorServer(emu, mode) as srv:
         ctrl = platform(srv.url)
         (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}))
