@@ -540,7 +540,9 @@ class ZaberAxis(Axis):
             self._clear_warnings()
         steps = self.to_steps(target)
         text = f"move abs {steps}"
-        reply = self._cmd(text)
+        # an absolute move is idempotent: after a lost or corrupt reply it is sent once more
+        # (with a new message id, so a late first reply cannot pass for the second)
+        reply = self._cmd(text, retries=1)
         if reply.ok:
             self._target = self.to_mm(steps)
             return

@@ -3,6 +3,7 @@ against the emulator over real pseudo-terminals and TCP."""
 
 from __future__ import annotations
 
+import logging
 import struct
 import time
 from collections.abc import Callable
@@ -342,40 +343,56 @@ def test_unsolicited_move_completed_before_a_reply() -> None:
     assert ev.completed == 1 and ev.last is not None and ev.last.position == 343040
 
 
+def request_position(axis: AptAxis) -> None:
+    """One MOT_REQ_POSCOUNTER exchange on the link (the axis would ask once more)."""
+    axis.link.request(pack_short(Msg.MOT_REQ_POSCOUNTER, 1, dest=axis.link.dest),
+                      Msg.MOT_GET_POSCOUNTER, "MOT_REQ_POSCOUNTER", channel=1)
+
+
 def test_garbled_header_raises_protocol_error_then_link_resyncs() -> None:
     garbage = b"\x41\x7e\x13\x99\x07\x22" + b"\x00" * 8 + b"\x55\xaa"
     good = H("12 04 06 00 81 50 01 00") + struct.pack("<i", 34304)
     axis, _ = connected([(REQ_POS, garbage), (REQ_POS, good)])
     with pytest.raises(ProtocolError, match="bad APT header 41 7e") as exc:
-        axis.position()
+        request_position(axis)
     assert "fake://apt" in str(exc.value) and "MOT_REQ_POSCOUNTER" in str(exc.value)
     assert axis.position() == pytest.approx(1.0)  # nothing of the garbage was kept
+
+
+def test_position_read_is_asked_again_after_a_garbled_reply(
+        caplog: pytest.LogCaptureFixture) -> None:
+    garbage = b"\x41\x7e\x13\x99\x07\x22" + b"\x00" * 8 + b"\x55\xaa"
+    good = H("12 04 06 00 81 50 01 00") + struct.pack("<i", 34304)
+    axis, _ = connected([(REQ_POS, garbage), (REQ_POS, good)])
+    with caplog.at_level(logging.WARNING):
+        assert axis.position() == pytest.approx(1.0)
+    assert "bad APT header 41 7e" in caplog.text and "asking once more" in caplog.text
 
 
 def test_known_id_with_wrong_length_is_rejected() -> None:
     bad = H("12 04 08 00 81 50") + bytes(8)  # GET_POSCOUNTER must carry 6 bytes
     axis, _ = connected([(REQ_POS, bad)])
     with pytest.raises(ProtocolError, match="must be 6 data bytes"):
-        axis.position()
+        request_position(axis)
 
 
 def test_reply_for_another_channel_is_rejected() -> None:
     other = H("12 04 06 00 81 50 02 00") + struct.pack("<i", 1)
     axis, _ = connected([(REQ_POS, other)])
     with pytest.raises(ProtocolError, match="channel 2"):
-        axis.position()
+        request_position(axis)
 
 
 def test_no_reply_times_out() -> None:
     axis, _ = connected([(REQ_POS, b"")], timeout_s=0.05)
     with pytest.raises(DeviceTimeoutError, match="no MOT_GET_POSCOUNTER reply"):
-        axis.position()
+        request_position(axis)
 
 
 def test_truncated_reply_is_a_protocol_error() -> None:
     axis, _ = connected([(REQ_POS, H("12 04 06 00 81 50 01 00"))], timeout_s=0.05)
     with pytest.raises(ProtocolError, match="truncated MOT_GET_POSCOUNTER"):
-        axis.position()
+        request_position(axis)
 
 
 def test_move_refused_before_homing_and_on_disabled_channel() -> None:
@@ -712,9 +729,18 @@ def test_garbled_reply_over_port_then_resync() -> None:
         assert axis.position() == pytest.approx(0.0)
 
 
-def test_no_reply_over_port_times_out_and_recovers() -> None:
+def test_no_reply_over_port_is_asked_again(caplog: pytest.LogCaptureFixture) -> None:
     srv, _, make = served("pty", [FaultConfig(device="translator", kind="no_reply",
                                               on="0x0411")])  # MOT_REQ_POSCOUNTER
+    with srv, make() as axis, caplog.at_level(logging.WARNING):
+        assert axis.position() == pytest.approx(0.0)  # a read is idempotent: asked again
+        assert srv.faults.faults[0].hits == 1
+        assert "no MOT_GET_POSCOUNTER reply within 0.5 s; asking once more" in caplog.text
+
+
+def test_no_reply_twice_over_port_times_out_and_recovers() -> None:
+    srv, _, make = served("pty", [FaultConfig(device="translator", kind="no_reply",
+                                              on="0x0411", count=2)])
     with srv, make() as axis:
         with pytest.raises(DeviceTimeoutError, match="MOT_GET_POSCOUNTER"):
             axis.position()
@@ -723,10 +749,12 @@ def test_no_reply_over_port_times_out_and_recovers() -> None:
 
 def test_late_reply_is_not_taken_for_the_next_one() -> None:
     srv, _, make = served("tcp", [FaultConfig(device="translator", kind="slow_reply",
-                                              on="0x0411", delay_s=0.8)])
+                                              on="0x0411", delay_s=1.2)])
     with srv, make() as axis:
-        with pytest.raises(DeviceTimeoutError, match="MOT_GET_POSCOUNTER"):
-            axis.position()  # the reply (0 counts) is on its way, late
+        # the reply (0 counts) is on its way, late; asking again first syncs the link, and
+        # the sync's answer queues behind the late reply: still nothing to trust in time
+        with pytest.raises(DeviceTimeoutError, match="MOT_REQ_POSCOUNTER"):
+            axis.position()
         axis.link.send(pack_data(Msg.MOT_SET_POSCOUNTER, pack_move(1, 34304)),
                        "MOT_SET_POSCOUNTER")
         deadline = time.monotonic() + 30  # an event, not a guess: the late reply is out

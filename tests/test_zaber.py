@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -566,4 +568,25 @@ def test_disconnect_mid_move_is_a_transport_error(mode: str) -> None:
             ax.move_to(30.0)
         assert not ax.chain.is_open
         assert sim[1].targets[-1] == pytest.approx(30.0, abs=1e-4)  # it went mid-move
+        ax.close()
+
+
+@pytest.mark.parametrize("kind", ["no_reply", "garbled", "bad_checksum"])
+def test_unreadable_reply_to_move_abs_is_sent_again_and_the_move_is_made(
+        kind: str, caplog: pytest.LogCaptureFixture) -> None:
+    """An absolute move is idempotent: after a lost or corrupt reply it is sent once more
+    (new message id), and the stage arrives (issue 15)."""
+    emu, clock, sim = make_chain(1)
+    with EmulatorServer(emu, "tcp") as srv:
+        ctrl = platform(srv.url)
+        (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}))
+        on_manual_clock([ax], clock)
+        ax.connect()
+        ax.home()
+        srv.faults = FaultInjector([FaultConfig(device="platform", kind=kind, on="move abs")])
+        with caplog.at_level(logging.WARNING):
+            assert ax.move_to(30.0) == pytest.approx(30.0, abs=1e-3)
+        assert srv.faults.faults[0].hits == 1
+        assert "retrying (1/1)" in caplog.text
+        assert sim[1].targets[-1] == pytest.approx(30.0, abs=1e-4)
         ax.close()
