@@ -631,8 +631,8 @@ def test_driver_detects_late_reply_over_tcp(caplog: pytest.LogCaptureFixture) ->
 
 def test_driver_survives_a_slow_reply_over_tcp(caplog: pytest.LogCaptureFixture) -> None:
     # the second reply of the session comes after the driver gave up on it
-    faults = [FaultConfig(device="turntable", kind="late_reply", on="TS", delay_s=0.4)]
-    with served("tcp", faults=faults, reply_timeout_s=0.25) as (_srv, _sims, cfg):
+    faults = [FaultConfig(device="turntable", kind="late_reply", on="TS", delay_s=1.5)]
+    with served("tcp", faults=faults, reply_timeout_s=1.0) as (_srv, _sims, cfg):
         (axis,) = make_axes(cfg, time_scale=20.0)
         with axis, caplog.at_level(logging.WARNING):
             for _ in range(3):
@@ -700,7 +700,7 @@ def test_wire_faults_during_home_and_move_are_recovered() -> None:
     faults = [FaultConfig(device="turntable", kind="no_reply", on="TS"),
               FaultConfig(device="turntable", kind="garbled", on="TE", following="VA"),
               FaultConfig(device="turntable", kind="truncated", on="TP")]
-    with served("tcp", faults=faults, reply_timeout_s=0.2, start=0.0) as (srv, _, cfg):
+    with served("tcp", faults=faults, reply_timeout_s=1.0, start=0.0) as (srv, _, cfg):
         (axis,) = make_axes(cfg, time_scale=20.0)
         with axis:
             axis.home()
@@ -713,7 +713,7 @@ def test_unreadable_te_after_pa_is_resolved_by_asking_the_controller(
         kind: str, caplog: pytest.LogCaptureFixture) -> None:
     """The move was taken: TS/TH/TP say so, and it goes on to the target (issue 15)."""
     faults = [FaultConfig(device="turntable", kind=kind, on="TE", following="PA")]
-    with served("pty", faults=faults, reply_timeout_s=0.2, start=0.0, scale=5.0
+    with served("pty", faults=faults, reply_timeout_s=1.0, start=0.0, scale=5.0
                 ) as (srv, sims, cfg):
         (axis,) = make_axes(cfg, time_scale=5.0)
         with axis, caplog.at_level(logging.WARNING):
@@ -732,7 +732,7 @@ def test_refused_pa_with_a_lost_te_is_sent_again_and_its_refusal_raised(
     sent once more, and the controller's own refusal (TE G) is what the caller sees."""
     faults = [FaultConfig(device="turntable", kind="no_reply", on="TE", following="PA",
                           nth=2)]
-    with served("tcp", faults=faults, reply_timeout_s=0.2, start=0.0) as (srv, sims, cfg):
+    with served("tcp", faults=faults, reply_timeout_s=1.0, start=0.0) as (srv, sims, cfg):
         (axis,) = make_axes(cfg, time_scale=20.0)
         with axis, caplog.at_level(logging.WARNING):
             axis.home()
@@ -749,8 +749,8 @@ def test_unreadable_te_after_pa_and_no_state_stops_the_axis() -> None:
     """When the controller cannot say what it did (TH never answers), the run faults with
     both reasons and the stage is stopped: a move is never silently lost."""
     faults = [FaultConfig(device="turntable", kind="no_reply", on="TE", following="PA"),
-              FaultConfig(device="turntable", kind="no_reply", on="TH", count=0)]
-    with served("pty", faults=faults, reply_timeout_s=0.2, start=0.0, scale=1.0
+              FaultConfig(device="turntable", kind="no_reply", on="TH", count=2)]
+    with served("pty", faults=faults, reply_timeout_s=1.0, start=0.0, scale=1.0
                 ) as (_, sims, cfg):
         (axis,) = make_axes(cfg, time_scale=1.0)
         with axis:
