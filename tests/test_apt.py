@@ -676,8 +676,8 @@ def test_emulator_bytes_parse_with_thorlabs_apt_protocol() -> None:
 server_mod = pytest.importorskip("drivers.sim.server")
 
 
-def served(mode: str, faults: list[FaultConfig] | None = None,
-           scale: float = 50.0) -> tuple[object, SimAxis, Callable[[], AptAxis]]:
+def served(mode: str, faults: list[FaultConfig] | None = None, scale: float = 50.0,
+           reply_timeout_s: float = 2.0) -> tuple[object, SimAxis, Callable[[], AptAxis]]:
     clock = ScaledClock(scale)
     ax = SimAxis("translator", physics_for(axis_config()), clock, np.random.default_rng(1),
                  start=12.0)
@@ -686,7 +686,7 @@ def served(mode: str, faults: list[FaultConfig] | None = None,
 
     def make() -> AptAxis:
         ctl = ControllerConfig(name="translator", protocol="apt", port=srv.url,
-                               reply_timeout_s=0.5, axes=[axis_config()])
+                               reply_timeout_s=reply_timeout_s, axes=[axis_config()])
         return make_axes(ctl, time_scale=scale)[0]
 
     return srv, ax, make
@@ -735,7 +735,7 @@ def test_no_reply_over_port_is_asked_again(caplog: pytest.LogCaptureFixture) -> 
     with srv, make() as axis, caplog.at_level(logging.WARNING):
         assert axis.position() == pytest.approx(0.0)  # a read is idempotent: asked again
         assert srv.faults.faults[0].hits == 1
-        assert "no MOT_GET_POSCOUNTER reply within 0.5 s; asking once more" in caplog.text
+        assert "no MOT_GET_POSCOUNTER reply within 2 s; asking once more" in caplog.text
 
 
 def test_no_reply_twice_over_port_times_out_and_recovers() -> None:
@@ -749,7 +749,8 @@ def test_no_reply_twice_over_port_times_out_and_recovers() -> None:
 
 def test_late_reply_is_not_taken_for_the_next_one() -> None:
     srv, _, make = served("tcp", [FaultConfig(device="translator", kind="slow_reply",
-                                              on="0x0411", delay_s=1.2)])
+                                              on="0x0411", delay_s=2.5)],
+                          reply_timeout_s=1.0)
     with srv, make() as axis:
         # the reply (0 counts) is on its way, late; asking again first syncs the link, and
         # the sync's answer queues behind the late reply: still nothing to trust in time

@@ -174,7 +174,7 @@ def test_no_reply_mid_run_is_bounded_stops_and_names_device_port_command() -> No
     # mute from the TE acknowledging the 2nd move on: every later reply is lost
     faults = [{"device": "turntable", "kind": "no_reply", "on": "TE", "following": "PA",
                "nth": 2, "count": 0}]
-    with sim_daemon(faults=faults, reply_timeout_s=0.2) as dp:
+    with sim_daemon(faults=faults, reply_timeout_s=0.5) as dp:
         t0 = time.monotonic()
         run = dp.run_and_wait("check")
         elapsed = time.monotonic() - t0

@@ -555,7 +555,7 @@ def test_physics_for_rotation_stage() -> None:
 # ======================================================================================
 @contextlib.contextmanager
 def served(mode: str, addresses: tuple[int, ...] = (1,), faults: list[FaultConfig] | None = None,
-           reply_timeout_s: float = 0.5, scale: float = 20.0, start: float = 2.5
+           reply_timeout_s: float = 2.0, scale: float = 20.0, start: float = 2.5
            ) -> Iterator[tuple[EmulatorServer, dict[int, SimAxis], ControllerConfig]]:
     """An emulated SMC100 chain served on ``mode``, and the controller config to reach it."""
     clock = ScaledClock(scale)

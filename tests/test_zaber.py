@@ -427,7 +427,7 @@ def test_physics_for_x_lsm_sizes() -> None:
 
 
 def platform(url: str) -> ControllerConfig:
-    return ControllerConfig(name="platform", protocol="zaber", port=url, reply_timeout_s=0.5,
+    return ControllerConfig(name="platform", protocol="zaber", port=url, reply_timeout_s=2.0,
                             axes=[x_config(role=r, address=i, backlash_approach=0.1,
                                            poll_interval_s=0.05).model_dump()
                                   for i, r in [(1, "x"), (2, "y"), (3, "z")]])
@@ -493,7 +493,7 @@ def test_driver_detects_bad_checksum_resyncs_and_ignores_late_reply() -> None:
         assert axes[1].position() == 0.0  # read-only queries retry once after corruption
         # a reply delayed past the timeout arrives during the next exchange: not the answer
         srv.faults = FaultInjector([FaultConfig(device="platform", kind="late_reply",
-                                                delay_s=0.7)])
+                                                delay_s=3.0)])
         with pytest.raises(DeviceTimeoutError):
             chain.command(1, 1, "get limit.max")
         assert chain.command(1, 1, "get pos").data == "0"
