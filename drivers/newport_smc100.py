@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 BAUDRATE = 57600
+# an exchange that is safe to repeat is tried at most this often after lost or corrupt
+# replies (two in a row still pass; the soak injects about one in seventy)
+ATTEMPTS = 3
 # set commands that may be resent with their TE check when its reply is lost
 IDEMPOTENT = frozenset({"AC", "VA", "SL", "SR", "MM", "ST"})
 TERMINATOR = b"\r\n"
@@ -357,13 +360,14 @@ class Smc100Axis(Axis):
         resent with it on a retry: one write instead of two also spares a Nagle/delayed-ACK
         stall on ``socket://`` links.
         A reply for another command or address is logged and skipped; garbage or a timeout
-        resynchronises the link (drain) and, when ``retry``, sends the command once more.
+        resynchronises the link (drain) and, when ``retry``, sends the command again (at
+        most ``ATTEMPTS`` tries).
         Raises ``DeviceTimeoutError`` or ``ProtocolError`` naming the command.
         """
         tr = self.transport
         text = self._cmd_text(command, arg)
         with tr.lock:
-            for attempt in (1, 2):
+            for attempt in range(1, ATTEMPTS + 1):
                 if self._resync and tr.is_open:
                     tr.drain()
                     self._resync = False
@@ -384,7 +388,7 @@ class Smc100Axis(Axis):
                     self._resync = True
                     if isinstance(exc, DeviceTimeoutError):
                         self._late.add(command)
-                    if attempt == 2 or not retry or not tr.is_open:
+                    if attempt == ATTEMPTS or not retry or not tr.is_open:
                         raise
                     log.warning("%s: %s; resynchronising and resending %s", self.name,
                                 exc.detail, " + ".join((before + data).decode().split()))

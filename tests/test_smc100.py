@@ -306,7 +306,8 @@ def test_late_reply_is_discarded(caplog: pytest.LogCaptureFixture) -> None:
 
 
 def test_reply_from_another_address_is_not_the_answer() -> None:
-    axis, _ = scripted_axis([*CONNECT, (b"1TP\r\n", b"2TP9.0\r\n"), (b"1TP\r\n", b"")])
+    axis, _ = scripted_axis([*CONNECT, (b"1TP\r\n", b"2TP9.0\r\n"), (b"1TP\r\n", b""),
+                             (b"1TP\r\n", b"")])
     with axis, pytest.raises(DeviceTimeoutError):
         axis.position()
 
@@ -321,19 +322,21 @@ def test_garbled_reply_resyncs_and_retries_once() -> None:
     assert port.written.count(b"1TP\r\n") == 2
 
 
-def test_garbage_twice_raises_protocol_error() -> None:
+def test_garbage_at_every_attempt_raises_protocol_error() -> None:
     axis, _ = scripted_axis([*CONNECT, (b"1TS\r\n", b"\x00\xff1T\r\n"),
-                                       (b"1TS\r\n", b"1TS0000Z3\r\n")])
+                                       (b"1TS\r\n", b"1TS0000Z3\r\n"),
+                                       (b"1TS\r\n", b"1TS000\x803\r\n")])
     with axis, pytest.raises(ProtocolError, match="1TS"):
         axis.status()
 
 
-def test_timeout_retries_once_then_raises() -> None:
+def test_timeout_retries_then_raises() -> None:
     axis, port = scripted_axis([*CONNECT, (b"1TS\r\n", b""), (b"1TS\r\n", b"1TS000033\r\n")])
     with axis:
         assert axis.status().homed
     assert port.written == b"1TS\r\n" * 3 and not port.script
-    axis, _port = scripted_axis([*CONNECT, (b"1TS\r\n", b""), (b"1TS\r\n", b"1TS0000")])
+    axis, _port = scripted_axis([*CONNECT, (b"1TS\r\n", b""), (b"1TS\r\n", b""),
+                                 (b"1TS\r\n", b"1TS0000")])
     with axis, pytest.raises(DeviceTimeoutError, match="truncated reply"):
         axis.status()
 
@@ -390,7 +393,7 @@ def test_or_is_not_resent_when_its_te_check_is_lost() -> None:
 
 
 def test_connect_to_a_silent_controller_fails_and_releases_the_port() -> None:
-    axis, _ = scripted_axis([(b"1TS\r\n", b""), (b"1TS\r\n", b"")])
+    axis, _ = scripted_axis([(b"1TS\r\n", b""), (b"1TS\r\n", b""), (b"1TS\r\n", b"")])
     with pytest.raises(DeviceTimeoutError, match=r"no reply .*port script://smc100.*'1TS'"):
         axis.connect()
     assert not axis.transport.is_open
@@ -749,7 +752,7 @@ def test_unreadable_te_after_pa_and_no_state_stops_the_axis() -> None:
     """When the controller cannot say what it did (TH never answers), the run faults with
     both reasons and the stage is stopped: a move is never silently lost."""
     faults = [FaultConfig(device="turntable", kind="no_reply", on="TE", following="PA"),
-              FaultConfig(device="turntable", kind="no_reply", on="TH", count=2)]
+              FaultConfig(device="turntable", kind="no_reply", on="TH", count=3)]
     with served("pty", faults=faults, reply_timeout_s=1.0, start=0.0, scale=1.0
                 ) as (_, sims, cfg):
         (axis,) = make_axes(cfg, time_scale=1.0)

@@ -587,6 +587,6 @@ def test_unreadable_reply_to_move_abs_is_sent_again_and_the_move_is_made(
         with caplog.at_level(logging.WARNING):
             assert ax.move_to(30.0) == pytest.approx(30.0, abs=1e-3)
         assert srv.faults.faults[0].hits == 1
-        assert "retrying (1/1)" in caplog.text
+        assert "retrying (1/2)" in caplog.text
         assert sim[1].targets[-1] == pytest.approx(30.0, abs=1e-4)
         ax.close()
