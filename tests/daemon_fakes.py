@@ -226,16 +226,60 @@ print(json.dumps([req(*r) for r in json.loads(sys.argv[2])]))
 """
 
 
-def as_observer(sock: object, requests: list[tuple[str, str, str]]) -> list[list[object]]:
-    """Send ``requests`` to the daemon from a process running as ``nobody`` (uid 65534):
-    an observer, not in any operator group. Returns ``[[status, reply], ...]``."""
-    import json as _json
+def _system_python() -> str:
     import shutil as _shutil
+
+    return _shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
+
+
+def as_observer(sock: object, requests: list[tuple[str, str, str]],
+                groups: list[int] | None = None) -> list[list[object]]:
+    """Send ``requests`` to the daemon from a process running as ``nobody`` (uid 65534):
+    an observer, in no group but ``groups`` (its supplementary groups, which the group
+    database does not know about). Returns ``[[status, reply], ...]``."""
+    import json as _json
     import subprocess as _subprocess
 
-    python = _shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
-    out = _subprocess.run([python, "-c", OBSERVER_SCRIPT, str(sock), _json.dumps(requests)],
-                          user=65534, group=65534, extra_groups=[], capture_output=True,
-                          text=True, timeout=20, cwd="/")
+    out = _subprocess.run([_system_python(), "-c", OBSERVER_SCRIPT, str(sock),
+                           _json.dumps(requests)],
+                          user=65534, group=65534, extra_groups=groups or [],
+                          capture_output=True, text=True, timeout=20, cwd="/")
     assert out.returncode == 0, out.stderr
     return _json.loads(out.stdout)
+
+
+HOLDER_SCRIPT = r"""
+import socket, sys
+held = []
+for request in sys.argv[2:]:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.connect(sys.argv[1])
+    try:
+        s.sendall(request.encode())
+    except OSError:  # refused (503) and closed before we sent
+        pass
+    held.append(s)
+print(len(held), flush=True)
+sys.stdin.read()  # hold every connection until the test closes our stdin
+"""
+
+
+class Holder:
+    """A process running as ``nobody`` that opens a connection per request text (a partial
+    request: an idle connection; a long poll: a slow one) and holds them all until closed."""
+
+    def __init__(self, sock: object, requests: list[str]) -> None:
+        import subprocess as _subprocess
+
+        self.proc = _subprocess.Popen([_system_python(), "-c", HOLDER_SCRIPT, str(sock),
+                                       *requests], user=65534, group=65534, extra_groups=[],
+                                      stdin=_subprocess.PIPE, stdout=_subprocess.PIPE,
+                                      text=True, cwd="/")
+        assert self.proc.stdout is not None
+        opened = self.proc.stdout.readline().strip()
+        assert opened == str(len(requests)), opened
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()
+        self.proc.wait(timeout=20)
