@@ -16,6 +16,7 @@ import http.client
 import json
 import os
 import socket
+import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -58,10 +59,18 @@ class _UnixConnection(http.client.HTTPConnection):
         self._path = path
 
     def connect(self) -> None:
+        """A blocking connect that waits (up to the timeout) in the kernel's first-come
+        queue for room in the daemon's listen backlog: a socket with a Python timeout is
+        non-blocking and would be turned away at once whenever a burst of other clients
+        fills the backlog, however briefly."""
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        sock.settimeout(self.timeout)
         try:
+            if self.timeout is not None and self.timeout > 0:
+                sec = int(self.timeout)
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, struct.pack(
+                    "ll", sec, int((self.timeout - sec) * 1e6)))
             sock.connect(self._path)
+            sock.settimeout(self.timeout)
         except OSError:
             sock.close()
             raise
