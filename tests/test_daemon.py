@@ -314,6 +314,65 @@ def test_cli_report_writes_png_and_json(capsys: pytest.CaptureFixture, tmp: Path
             f"run-{run_id}.json", f"run-{run_id}.png"]
 
 
+def _can_mount() -> bool:
+    return subprocess.run(["unshare", "-m", "true"], capture_output=True).returncode == 0
+
+
+def _alignctl_proc(*args: str, stdout: int | None = None, read_only: Path | None = None
+                   ) -> subprocess.CompletedProcess[str]:
+    """alignctl in its own process, onto a given stdout; with ``read_only``, in a mount
+    namespace where that folder is a read-only bind mount (unwritable even for root)."""
+    cmd = [str(Path(sys.executable).with_name("alignctl")), *args]
+    if read_only is not None:
+        cmd = ["unshare", "-m", "sh", "-c", 'mount --bind "$0" "$0" && mount -o '
+               'remount,bind,ro "$0" && exec "$@"', str(read_only), *cmd]
+    return subprocess.run(cmd, cwd="/", stdout=stdout if stdout is not None else
+                          subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=60)
+
+
+def test_report_out_onto_a_file_or_an_unwritable_folder_is_a_clear_error(
+        capsys: pytest.CaptureFixture, tmp: Path) -> None:
+    procs = {"align": make_procedure("aligned"), "check": make_procedure("within_tolerance")}
+    for env in make_env(procs):
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        run_id = str(env.client.start("check")["run_id"])
+        follow(env.client, int(run_id))
+        (tmp / "afile").write_text("keep me\n")
+        assert ctl(env.sock, "report", run_id, "--out", str(tmp / "afile")) == 2
+        err = capsys.readouterr().err
+        assert f"--out {tmp / 'afile'} is a file, not a folder" in err
+        assert (tmp / "afile").read_text() == "keep me\n"
+        assert ctl(env.sock, "report", run_id, "--out", str(tmp / "afile" / "sub")) == 2
+        assert "cannot create the folder" in capsys.readouterr().err  # "Not a directory"
+        if not _can_mount():
+            pytest.skip("an unwritable folder needs a read-only bind mount (CAP_SYS_ADMIN)")
+        locked = tmp / "locked"  # read-only for everyone, root included: a read-only mount
+        locked.mkdir()
+        for out, says in ((locked, "cannot write into --out"),
+                          (locked / "new", "cannot create the folder")):
+            r = _alignctl_proc("--socket", env.sock, "report", run_id, "--out", str(out),
+                               read_only=locked)
+            assert r.returncode == 2, r.stderr
+            assert says in r.stderr and "Read-only file system" in r.stderr
+            assert "Traceback" not in r.stderr
+        assert list(locked.iterdir()) == []
+
+
+def test_output_into_a_closed_pipe_ends_quietly() -> None:
+    """``alignctl status | head -1``: the reader leaves early; no BrokenPipe traceback."""
+    for env in make_env():
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        for cmd in (["status"], ["history", "--json"], ["status", "--json"]):
+            r_fd, w_fd = os.pipe()
+            os.close(r_fd)  # the reader is gone before anything is written
+            try:
+                r = _alignctl_proc("--socket", env.sock, *cmd, stdout=w_fd)
+            finally:
+                os.close(w_fd)
+            assert r.returncode == 141, r.stderr
+            assert r.stderr == ""
+
+
 _REPORT_WRITER = r"""
 import sys
 from pathlib import Path
