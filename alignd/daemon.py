@@ -8,7 +8,9 @@ axes itself, because a stopped stage matters more than ownership).
 
 States: ``starting`` (connecting the rig), ``idle``, ``aligning``, ``checking``, ``fault``
 (the hardware is in an unknown state: a run ended in a fault or the rig could not be
-opened; ``POST /reset`` / ``alignctl reset`` reconnects). A run is recorded in the store
+opened; ``POST /reset`` / ``alignctl reset`` re-reads the config file, validated first (a
+bad file is refused with the reason and the old config stays), and reconnects). A run is
+recorded in the store
 before it is queued, so a run that cannot be recorded never starts. A run left ``running``
 by a killed daemon is marked ``interrupted`` at the next start and never resumed.
 
@@ -52,7 +54,7 @@ EVENT_BUFFER = 5000  # live progress events kept in memory (all runs)
 BUSY_STATES = ("aligning", "checking")
 
 Procedure = Callable[..., Any]  # (rig, cfg, *, progress, abort, recorder) -> RunResult
-RigFactory = Callable[[], Any]  # -> alignd.procedures.rig.Rig (connected)
+RigFactory = Callable[[AligndConfig], Any]  # config -> alignd.procedures.rig.Rig (connected)
 
 
 # ---- systemd notification -----------------------------------------------------------------
@@ -129,6 +131,7 @@ class _Job:
     started_by: str = "user"
     user: str | None = None
     abort: AbortEvent = field(default_factory=AbortEvent)
+    config: AligndConfig | None = None  # reset: the config to reconnect with
 
 
 def _result_dict(result: Any) -> tuple[dict[str, Any], Any]:
@@ -170,8 +173,12 @@ class Daemon:
     def __init__(self, cfg: AligndConfig, store: Store, rig_factory: RigFactory, *,
                  procedures: Mapping[str, Procedure] | None = None,
                  notifier: Notifier | None = None, socket_path: str = "",
-                 stop_timeout_s: float = DEFAULT_STOP_TIMEOUT_S) -> None:
+                 stop_timeout_s: float = DEFAULT_STOP_TIMEOUT_S,
+                 config_path: str | Path | None = None) -> None:
         self.cfg = cfg
+        self.config_path = None if config_path is None else Path(config_path)
+        # called with a newly loaded config (by reset), before the rig is reopened
+        self.on_config: list[Callable[[AligndConfig], None]] = []
         self.store = store
         self.rig_factory = rig_factory
         self.procedures = dict(procedures) if procedures is not None else default_procedures()
@@ -256,6 +263,8 @@ class Daemon:
                     break
                 if job.kind == "reset":
                     self._close_rig()
+                    if job.config is not None:
+                        self._apply_config(job.config)
                     self._open_rig()
                 else:
                     self._run(job)
@@ -270,7 +279,7 @@ class Daemon:
         self._set_state("starting")
         rig = None
         try:
-            rig = self.rig_factory()
+            rig = self.rig_factory(self.cfg)
             if not getattr(rig, "identities", None) and hasattr(rig, "connect"):
                 rig.connect()
         except Exception as exc:  # any failure leaves the daemon up, in fault, saying why
@@ -289,6 +298,18 @@ class Daemon:
         self._devices = _identities(rig)
         self._set_state("idle")
         log.info("rig ready: %s", ", ".join(sorted(self._devices)) or "(no identities)")
+
+    def _apply_config(self, cfg: AligndConfig) -> None:
+        """Use a newly loaded config from now on (worker thread, no run in progress)."""
+        old = self.config_hash
+        with self._lock:
+            self.cfg = cfg
+            self.config_hash = config_hash(cfg)
+            self._config_json = cfg.model_dump_json()
+        for fn in self.on_config:
+            fn(cfg)
+        log.info("config %s reloaded: hash %s -> %s", self.config_path, old[:12],
+                 self.config_hash[:12])
 
     def _close_rig(self) -> None:
         rig, self._rig = self._rig, None
@@ -510,17 +531,44 @@ class Daemon:
         return {"aborted": job.run_id, "message": reason}
 
     def reset(self, peer: Peer) -> dict[str, Any]:
+        """Re-read the config file (a bad one is refused: the old config stays) and
+        reconnect the hardware with it."""
+        self._check_resettable()
+        cfg, note = self._reload_config()
         with self._cond:
-            if self._current is not None or self._state in BUSY_STATES:
-                raise Refused(HTTPStatus.CONFLICT, "busy", "busy: abort the run first",
-                              state=self._state)
-            if self._stopping.is_set():
-                raise Refused(HTTPStatus.SERVICE_UNAVAILABLE, "stopping", "alignd is stopping")
-            self._require_worker()
+            self._check_resettable()
             self._state = "starting"
-        log.warning("reset requested by %s: reconnecting the rig", peer.describe())
-        self._jobs.put(_Job(kind="reset"))
-        return {"state": "starting", "message": "reconnecting the hardware"}
+        log.warning("reset requested by %s: reconnecting the rig (%s)", peer.describe(), note)
+        self._jobs.put(_Job(kind="reset", config=cfg))
+        return {"state": "starting", "message": f"reconnecting the hardware ({note})"}
+
+    def _check_resettable(self) -> None:
+        if self._current is not None or self._state in BUSY_STATES:
+            raise Refused(HTTPStatus.CONFLICT, "busy", "busy: abort the run first",
+                          state=self._state)
+        if self._stopping.is_set():
+            raise Refused(HTTPStatus.SERVICE_UNAVAILABLE, "stopping", "alignd is stopping")
+        self._require_worker()
+
+    def _reload_config(self) -> tuple[AligndConfig | None, str]:
+        """The config file, loaded and validated now, and a note on what changed."""
+        if self.config_path is None:
+            return None, "no config file to re-read"
+        try:
+            cfg = load_config(self.config_path)
+        except ConfigError as exc:
+            log.error("reset refused: %s", exc)
+            raise Refused(HTTPStatus.CONFLICT, "config",
+                          f"reset refused, the config file is not valid: {exc}\nalignd keeps "
+                          f"the config it has (hash {self.config_hash[:12]}); fix the file "
+                          "and reset again") from None
+        new = config_hash(cfg)
+        if new == self.config_hash:
+            return cfg, f"config {self.config_path} unchanged"
+        note = f"config {self.config_path} reloaded, hash {new[:12]}"
+        if cfg.daemon.socket != self.cfg.daemon.socket:
+            note += "; the new daemon.socket takes effect when alignd restarts"
+        return cfg, note
 
     def _require_worker(self) -> None:
         if not self._worker.is_alive():
@@ -636,7 +684,7 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     if rig_factory is None:
         seed = args.seed
 
-        def rig_factory() -> Any:
+        def rig_factory(cfg: AligndConfig) -> Any:
             from alignd.hardware import open_rig
 
             return open_rig(cfg, seed=seed)
@@ -644,8 +692,14 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     notifier = Notifier(watchdog=cfg.daemon.watchdog)
     try:
         daemon = Daemon(cfg, store, rig_factory, procedures=procedures, notifier=notifier,
-                        socket_path=socket_path, stop_timeout_s=args.stop_timeout)
+                        socket_path=socket_path, stop_timeout_s=args.stop_timeout,
+                        config_path=args.config)
         server = ApiServer(socket_path, daemon, Authoriser(cfg.daemon.operator_group))
+
+        def use_operator_group(new: AligndConfig) -> None:
+            server.authoriser = Authoriser(new.daemon.operator_group)
+
+        daemon.on_config.append(use_operator_group)
     except (AligndError, ImportError, OSError) as exc:
         print(f"alignd: cannot start on {socket_path}: {exc}", file=sys.stderr)
         store.close()

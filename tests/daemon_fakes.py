@@ -149,16 +149,18 @@ def short_tmp() -> Path:
 
 
 def make_env(procs: dict[str, Any] | None = None, *, rig_factory: Any = None,
-             authoriser: Authoriser | None = None, **server_kw: Any) -> Iterator[Env]:
+             authoriser: Authoriser | None = None, config_path: Path | None = None,
+             **server_kw: Any) -> Iterator[Env]:
     tmp = short_tmp()
-    cfg = load_config(SIM_CONFIG)
+    cfg = load_config(config_path or SIM_CONFIG)
     store = Store(tmp / "state").open()
     gate = threading.Event()
     rig = FakeRig()
     procs = procs or {"align": make_procedure("aligned", gate=gate),
                       "check": make_procedure("within_tolerance", gate=gate)}
-    daemon = Daemon(cfg, store, rig_factory or (lambda: rig), procedures=procs,
-                    socket_path=str(tmp / "s.sock"), stop_timeout_s=5.0)
+    daemon = Daemon(cfg, store, rig_factory or (lambda _cfg: rig), procedures=procs,
+                    socket_path=str(tmp / "s.sock"), stop_timeout_s=5.0,
+                    config_path=config_path)
     server = ApiServer(tmp / "s.sock", daemon, authoriser or Authoriser(None), **server_kw)
     server.start()
     daemon.start()
@@ -202,7 +204,7 @@ def run_fake_daemon(argv: list[str], mode: str) -> int:
     gate = None if mode == "quick" else threading.Event()
     procs = {"align": make_procedure("aligned", gate=gate),
              "check": make_procedure("within_tolerance", gate=gate)}
-    return main(argv, rig_factory=FakeRig, procedures=procs)
+    return main(argv, rig_factory=lambda _cfg: FakeRig(), procedures=procs)
 
 
 if __name__ == "__main__":

@@ -124,7 +124,7 @@ def test_device_error_faults_the_daemon_until_reset() -> None:
 
 
 def test_rig_that_cannot_open_leaves_daemon_up_in_fault() -> None:
-    def factory() -> Any:
+    def factory(_cfg: Any) -> Any:
         raise PortBusyError("platform (zaber): /dev/ttyUSB0 is held by another process")
 
     for env in make_env(rig_factory=factory):

@@ -39,6 +39,10 @@ FAKES = Path(__file__).with_name("daemon_fakes.py")
 REPO = Path(__file__).resolve().parents[1]
 
 
+def fake_rig(_cfg: object) -> FakeRig:
+    return FakeRig()
+
+
 @pytest.fixture
 def tmp() -> Iterator[Path]:
     d = short_tmp()
@@ -83,7 +87,8 @@ def test_bad_config_exits_2_naming_the_key(tmp: Path, capsys: pytest.CaptureFixt
 def test_unwritable_state_dir_exits_3(tmp: Path, capsys: pytest.CaptureFixture) -> None:
     (tmp / "file").write_text("x")
     rc = daemon_mod.main(["--config", str(SIM_CONFIG), "--state-dir", str(tmp / "file" / "st"),
-                          "--socket", str(tmp / "s")], rig_factory=FakeRig, procedures={})
+                          "--socket", str(tmp / "s")], rig_factory=fake_rig,
+                          procedures={})
     assert rc == 3
     assert "cannot use the state directory" in capsys.readouterr().err
 
@@ -158,11 +163,11 @@ def test_sigkill_mid_run_then_restart_marks_it_interrupted(tmp: Path,
         wait_until(lambda: client.status()["progress"] is not None)
         # a second daemon on the same state directory or socket is refused, harmlessly
         assert daemon_mod.main(["--config", str(SIM_CONFIG), "--socket", str(tmp / "t.sock"),
-                                "--state-dir", str(tmp / "state")], rig_factory=FakeRig,
+                                "--state-dir", str(tmp / "state")], rig_factory=fake_rig,
                                procedures={}) == 3
         assert "another alignd is using this state directory" in capsys.readouterr().err
         assert daemon_mod.main(["--config", str(SIM_CONFIG), "--socket", str(tmp / "s.sock"),
-                                "--state-dir", str(tmp / "other")], rig_factory=FakeRig,
+                                "--state-dir", str(tmp / "other")], rig_factory=fake_rig,
                                procedures={}) == 3
         assert "already listening" in capsys.readouterr().err
         assert client.status()["state"] == "aligning"  # the first daemon is unaffected
@@ -474,3 +479,46 @@ def test_udev_rule_lines_are_well_formed() -> None:
         assert all(("==" in kv) or ("+=" in kv) or ("=" in kv) for kv in keys), ln
         assert 'SYMLINK+="alignd/' in ln and ("GROUP=\"dialout\"" in ln or
                                                "GROUP=\"video\"" in ln)
+
+
+# ---- reset re-reads the config (issue 9) ----------------------------------------------------
+def test_reset_rereads_the_config_and_a_bad_file_keeps_the_old_one(
+        capsys: pytest.CaptureFixture, tmp: Path) -> None:
+    import yaml
+
+    path = tmp / "rig.yaml"
+    data = yaml.safe_load(SIM_CONFIG.read_text())
+    path.write_text(yaml.safe_dump(data))
+    opened: list[object] = []
+
+    def factory(cfg: object) -> FakeRig:
+        opened.append(cfg)
+        return FakeRig()
+
+    for env in make_env(config_path=path, rig_factory=factory):
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        first = env.client.status()
+        # the operator fixes the config (a tolerance, the name) and resets
+        data["name"], data["procedure"]["tolerance_um"] = "rig-B", 7.5
+        path.write_text(yaml.safe_dump(data))
+        assert ctl(env.sock, "reset") == 0
+        assert "reloaded" in capsys.readouterr().out
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        st = env.client.status()
+        assert st["name"] == "rig-B" and st["config_hash"] != first["config_hash"]
+        assert len(opened) == 2 and opened[-1].procedure.tolerance_um == 7.5  # type: ignore
+        run_id = env.client.start("check")["run_id"]
+        env.gate.set()
+        run = env.client.run(follow(env.client, run_id)["run_id"])
+        assert run["config_hash"] == st["config_hash"] and run["config"]["name"] == "rig-B"
+        # a bad file: the reset is refused, naming file and key; the config stays
+        data["procedure"]["tolerance_uum"] = 5.0
+        path.write_text(yaml.safe_dump(data))
+        assert ctl(env.sock, "reset") == 2
+        err = capsys.readouterr().err
+        assert "reset refused" in err and str(path) in err
+        assert "procedure.tolerance_uum" in err and "keeps the config it has" in err
+        assert "Traceback" not in err
+        st2 = env.client.status()
+        assert st2["state"] == "idle" and st2["config_hash"] == st["config_hash"]
+        assert len(opened) == 2  # the rig was not touched

@@ -275,7 +275,7 @@ def _control(args: argparse.Namespace, what: str) -> int:
         reply = client.abort() if what == "abort" else client.reset()
     except ApiError as exc:
         print(f"alignctl: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE if exc.code == "forbidden" else EXIT_FAULT
+        return EXIT_USAGE if exc.code in ("forbidden", "config") else EXIT_FAULT
     if args.json:
         _print_json(reply)
     else:
