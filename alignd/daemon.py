@@ -42,7 +42,7 @@ from typing import Any
 from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
 from alignd.client import resolve_socket
-from alignd.config import AligndConfig, config_hash, frame_keeper, load_config
+from alignd.config import AligndConfig, config_hash, frame_keeper, load_config, run_footprint
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
 
@@ -429,6 +429,7 @@ class Daemon:
 
     # ---- the API's Controller -------------------------------------------------------
     def status(self) -> dict[str, Any]:
+        refused = self.store.space_problem()  # why a new run would be refused (disk space)
         with self._lock:
             job = self._current
             return {
@@ -441,6 +442,7 @@ class Daemon:
                 "config_hash": self.config_hash, "devices": self._devices,
                 "pid": os.getpid(), "uptime_s": round(time.monotonic() - self._started_at, 1),
                 "state_dir": str(self.store.state_dir), "socket": self.socket_path,
+                "runs_refused": refused,
             }
 
     def history(self, limit: int) -> list[dict[str, Any]]:
@@ -564,7 +566,7 @@ class Daemon:
                           "and reset again") from None
         new = config_hash(cfg)
         if new == self.config_hash:
-            return cfg, f"config {self.config_path} unchanged"
+            return None, f"config {self.config_path} unchanged"
         note = f"config {self.config_path} reloaded, hash {new[:12]}"
         if cfg.daemon.socket != self.cfg.daemon.socket:
             note += "; the new daemon.socket takes effect when alignd restarts"
@@ -583,7 +585,8 @@ def status_line(st: Mapping[str, Any]) -> str:
     if state == "fault":
         return f"fault: {st.get('fault')}"
     if state not in BUSY_STATES:
-        return str(state)
+        refused = st.get("runs_refused")
+        return f"{state}; runs refused: {refused}" if refused else str(state)
     text = f"{state} (run {st.get('run_id')})"
     p = st.get("progress") or {}
     bits = []
@@ -637,6 +640,11 @@ def lock_state_dir(state_dir: Path) -> Any:
     return f
 
 
+def use_space_floor(store: Store, cfg: AligndConfig) -> None:
+    """Refuse runs unless there is room for one run of this config (its frames)."""
+    store.min_free_bytes, store.space_note = run_footprint(cfg)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="alignd", description="The alignment daemon (runs in the "
                                 "foreground; systemd runs it the same way).")
@@ -672,15 +680,19 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
         print(f"alignd: refusing to start: {exc}", file=sys.stderr)
         return EXIT_FAULT
     store = Store(state_dir)
+    use_space_floor(store, cfg)
     try:
         store.open()
-        store.check_writable()
         store.mark_interrupted()
     except StoreError as exc:
-        print(f"alignd: refusing to start, no run could be recorded: {exc}", file=sys.stderr)
+        print(f"alignd: refusing to start, the history cannot be used: {exc}", file=sys.stderr)
         store.close()
         lock.close()
         return EXIT_FAULT
+    try:  # short of space: start anyway, say so in status, refuse runs until there is room
+        store.check_writable()
+    except StoreError as exc:
+        log.warning("runs are refused until this is fixed: %s", exc)
     if rig_factory is None:
         seed = args.seed
 
@@ -700,6 +712,7 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
             server.authoriser = Authoriser(new.daemon.operator_group)
 
         daemon.on_config.append(use_operator_group)
+        daemon.on_config.append(lambda new: use_space_floor(store, new))
     except (AligndError, ImportError, OSError) as exc:
         print(f"alignd: cannot start on {socket_path}: {exc}", file=sys.stderr)
         store.close()

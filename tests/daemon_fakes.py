@@ -8,6 +8,7 @@ Also used by ``run_fake_daemon`` in a subprocess (SIGTERM/SIGKILL tests).
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import sys
 import tempfile
@@ -194,16 +195,43 @@ def follow(client: Client, run_id: int) -> dict[str, Any]:
             return {**r, "events": events}
 
 
+def fill_disk(rig: Any, cfg: Any, *, progress: Any, abort: threading.Event,
+              recorder: Any) -> FakeResult:
+    """A run that records incompressible 64 KiB frames until the disk is full (the store
+    raises) or it is aborted."""
+    from alignd.store import StoreError
+
+    rng = np.random.default_rng(5)
+    k = 0
+    try:
+        while not abort.is_set():
+            recorder.frame(rng.integers(0, 256, (256, 256), dtype=np.uint8),
+                           f"measure-1-{k:03d}-0")
+            k += 1
+    except StoreError:
+        # the disk is full for every writer now (as when a log fills it): take the last
+        # bytes too, so that what the failed frame file gave back does not save the day
+        filler = recorder.store.state_dir.parent / "filler"
+        with open(filler, "ab", buffering=0) as f, contextlib.suppress(OSError):
+            while True:
+                f.write(b"\0" * 4096)
+        raise
+    return FakeResult("aborted", (0.0, 0.0), 5.0, 0, "aborted")
+
+
 def run_fake_daemon(argv: list[str], mode: str) -> int:
     """Entry for the subprocess tests: the real ``alignd`` main with a fake rig.
 
-    mode ``block``: runs block until aborted (SIGTERM/SIGKILL tests); ``quick``: finish.
+    mode ``block``: runs block until aborted (SIGTERM/SIGKILL tests); ``quick``: finish;
+    ``fill``: an align fills the disk, a check finishes.
     """
     from alignd.daemon import main
 
-    gate = None if mode == "quick" else threading.Event()
+    gate = None if mode in ("quick", "fill") else threading.Event()
     procs = {"align": make_procedure("aligned", gate=gate),
              "check": make_procedure("within_tolerance", gate=gate)}
+    if mode == "fill":
+        procs["align"] = fill_disk
     return main(argv, rig_factory=lambda _cfg: FakeRig(), procedures=procs)
 
 

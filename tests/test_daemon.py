@@ -522,3 +522,91 @@ def test_reset_rereads_the_config_and_a_bad_file_keeps_the_old_one(
         st2 = env.client.status()
         assert st2["state"] == "idle" and st2["config_hash"] == st["config_hash"]
         assert len(opened) == 2  # the rig was not touched
+
+
+# ---- a full disk (issue 9): a real small file system, in a mount namespace --------------------
+def _spawn_on_small_disk(tmp: Path, config: Path, size: str) -> subprocess.Popen[str]:
+    """The fake-rig daemon with its state directory on a ``size`` tmpfs of its own."""
+    disk = tmp / "disk"
+    disk.mkdir()
+    return subprocess.Popen(
+        ["unshare", "-m", "sh", "-c", 'mount -t tmpfs -o size="$0" tmpfs "$1" && shift && '
+         'exec "$@"', size, str(disk), sys.executable, str(FAKES), "fill", "--config",
+         str(config), "--socket", str(tmp / "s.sock"), "--state-dir", str(disk / "state"),
+         "--stop-timeout", "5"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _small_camera_config(tmp: Path) -> Path:
+    import yaml
+
+    data = yaml.safe_load(SIM_CONFIG.read_text())
+    for cam in data["cameras"]:
+        cam.update(width=64, height=48)  # a run needs ~0.6 MiB of frames + 4 MiB of records
+    path = tmp / "small.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+needs_mount = pytest.mark.skipif(not _can_mount(), reason="needs a mount namespace "
+                                 "(CAP_SYS_ADMIN) for a small real file system")
+
+
+@needs_mount
+def test_disk_full_mid_run_still_records_the_runs_end_and_runs_resume_with_space(
+        tmp: Path, capsys: pytest.CaptureFixture) -> None:
+    proc = _spawn_on_small_disk(tmp, _small_camera_config(tmp), "12m")
+    client = Client(tmp / "s.sock", timeout_s=10.0)
+    try:
+        wait_ready(client, proc)
+        assert client.status()["runs_refused"] is None
+        run_id = client.start("align")["run_id"]  # records frames until the disk is full
+        out = follow(client, run_id)
+        assert out["status"] == "finished" and out["verdict"] == "fault"
+        run = client.run(run_id)
+        assert run["status"] == "finished" and run["verdict"] == "fault"
+        assert "No space left on device" in run["reason"] or "disk is full" in run["reason"]
+        assert len(run["frames"]) > 50  # it did fill the disk
+        # a run cut off mid-motion faults the daemon (as any fault does: reset to go on);
+        # status also says that runs are refused for lack of space, and why
+        st = client.status()
+        assert st["state"] == "fault" and "disk nearly full" in st["runs_refused"]
+        assert ctl(str(tmp / "s.sock"), "reset") == 0
+        wait_until(lambda: client.status()["state"] == "idle")
+        assert ctl(str(tmp / "s.sock"), "check") == 3
+        assert "disk nearly full" in capsys.readouterr().err
+        assert ctl(str(tmp / "s.sock"), "status") == 0
+        assert "state: idle; runs refused: " in capsys.readouterr().out
+        # space comes back (the filler and the frames are removed): runs are accepted again
+        disk = Path(f"/proc/{proc.pid}/root{tmp}/disk")  # the daemon's mounts
+        (disk / "filler").unlink()
+        for sub in (disk / "state" / "frames").iterdir():
+            if sub.is_dir():
+                shutil.rmtree(sub)
+        wait_until(lambda: client.status()["runs_refused"] is None)
+        check = follow(client, client.start("check")["run_id"])
+        assert check["verdict"] == "within_tolerance"
+        assert [r["status"] for r in client.history()] == ["finished", "finished"]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert "released the 4 MiB reserve to record the end of run 1" in err
+
+
+@needs_mount
+def test_too_little_space_at_start_answers_status_with_the_reason(
+        tmp: Path, capsys: pytest.CaptureFixture) -> None:
+    proc = _spawn_on_small_disk(tmp, SIM_CONFIG, "12m")  # a run may need 173 MiB of frames
+    client = Client(tmp / "s.sock", timeout_s=10.0)
+    try:
+        wait_ready(client, proc)  # it started (it used to exit with 3)
+        refused = client.status()["runs_refused"]
+        assert "disk nearly full" in refused and "a run needs at least 173 MiB" in refused
+        assert "192 frames of 1280x720x1 bytes (keep_frames all)" in refused
+        assert ctl(str(tmp / "s.sock"), "align") == 3
+        assert "a run needs at least 173 MiB" in capsys.readouterr().err
+        assert client.history() == []
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
