@@ -730,8 +730,8 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     signal.signal(signal.SIGINT, on_signal)
     log.info("alignd %s: config %s (%s), state %s, socket %s", __version__, args.config,
              daemon.config_hash[:12], state_dir, socket_path)
+    daemon.start()  # the worker first: a request queued on the socket may be served at once
     server.start()
-    daemon.start()
     notifier.ready("starting")
     while not stop.wait(0.5):
         pass
