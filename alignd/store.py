@@ -122,8 +122,7 @@ class StoreError(AligndError):
 
 def _is_full(exc: BaseException) -> bool:
     if isinstance(exc, sqlite3.Error):
-        return (getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
-                or "disk is full" in str(exc))
+        return exc.sqlite_errorcode == sqlite3.SQLITE_FULL or "disk is full" in str(exc)
     return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
 
 

@@ -68,7 +68,8 @@ def test_refusals_are_logged_at_a_bounded_rate(caplog: pytest.LogCaptureFixture)
 # ---- on a real socket ------------------------------------------------------------------------
 @pytest.fixture
 def small() -> Iterator[Env]:
-    yield from make_env(limits=Limits(total=12, reserved=4, per_uid=4))
+    # a long request deadline: the held idle connections stay held however slow the machine
+    yield from make_env(limits=Limits(total=12, reserved=4, per_uid=4), request_timeout_s=60.0)
 
 
 @pytest.mark.skipif(os.getuid() != 0, reason="drops privileges to uid 65534")
