@@ -79,9 +79,15 @@ class Notifier:
             return False
         try:
             with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
+                # never wait: a receiver whose queue is full (it is not reading) would
+                # otherwise block the worker, and with it every stop
+                s.setblocking(False)
                 s.connect(self.address)
                 s.sendall(message.encode())
             return True
+        except BlockingIOError:
+            log.debug("sd_notify to %r dropped (its queue is full): %r", self.address, message)
+            return False
         except OSError as exc:
             log.warning("sd_notify to %r failed: %s", self.address, exc)
             return False

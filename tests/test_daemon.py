@@ -3,6 +3,7 @@ sd_notify, CLI output and exit codes, atomic reports, and the systemd units."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -10,6 +11,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -108,19 +110,33 @@ def test_resolution_order_for_socket_and_state_dir(monkeypatch: pytest.MonkeyPat
 
 
 # ---- signals and sd_notify (subprocess) --------------------------------------------------------
-def _recv_all(sock: socket.socket) -> list[str]:
-    msgs = []
-    while True:
-        try:
-            msgs.append(sock.recv(4096).decode())
-        except BlockingIOError:
-            return msgs
+class _NotifyReader:
+    """The service manager's side of ``$NOTIFY_SOCKET``, read continuously (as systemd
+    does): its queue holds only ``net.unix.max_dgram_qlen`` (10) messages."""
+
+    def __init__(self, path: Path) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.1)
+        self.msgs: list[str] = []
+        self._stop = False
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        while not self._stop:
+            with contextlib.suppress(TimeoutError):
+                self.msgs.append(self.sock.recv(4096).decode())
+
+    def close(self) -> str:
+        self._stop = True
+        self._thread.join(5)
+        self.sock.close()
+        return "\n".join(self.msgs)
 
 
 def test_sigterm_mid_run_aborts_records_and_exits_in_time(tmp: Path) -> None:
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(tmp / "notify"))
-    notify.setblocking(False)
+    notify = _NotifyReader(tmp / "notify")
     proc = spawn(tmp, "block", env={"NOTIFY_SOCKET": str(tmp / "notify"),
                                     "WATCHDOG_USEC": "200000"})
     client = Client(tmp / "s.sock")
@@ -133,12 +149,11 @@ def test_sigterm_mid_run_aborts_records_and_exits_in_time(tmp: Path) -> None:
         proc.send_signal(signal.SIGTERM)
         rc = proc.wait(timeout=10)
         elapsed = time.monotonic() - t0
-        msgs = "\n".join(_recv_all(notify))
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-        notify.close()
+        msgs = notify.close()
     err = proc.stderr.read()
     assert rc == 0, err
     assert elapsed < 5.0  # within --stop-timeout
@@ -210,6 +225,18 @@ def test_notifier_protocol(tmp: Path) -> None:
     other = Notifier({"NOTIFY_SOCKET": "@x", "WATCHDOG_USEC": "4000000", "WATCHDOG_PID": "1"})
     assert other.watchdog_s is None  # the watchdog is meant for another process
     assert not Notifier({}).send("READY=1")  # outside systemd: a no-op
+    # a receiver that does not read (its queue holds 10): messages are dropped, the daemon
+    # is never blocked (it was: the worker hung in sendall and SIGTERM could not stop it)
+    deaf = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    deaf.bind(str(tmp / "deaf"))
+    sent: list[bool] = []
+    t = threading.Thread(target=lambda: sent.extend(
+        Notifier({"NOTIFY_SOCKET": str(tmp / "deaf")}).send("WATCHDOG=1") for _ in range(30)),
+        daemon=True)
+    t.start()
+    t.join(10)
+    deaf.close()
+    assert not t.is_alive() and sent[0] and not sent[-1]
 
 
 def test_status_line_names_the_progress() -> None:
