@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench-quick venv
+.PHONY: demo test bench-quick venv stress
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -28,3 +28,8 @@ test: $(STAMP)
 
 bench-quick: $(STAMP)
 	@set -e; for b in bench/*.py; do echo "== $$b --quick"; $(BIN)/python $$b --quick; done
+
+# the whole suite 5 times with one CPU-bound process per core beside it (never flakes)
+RUNS ?= 5
+stress: $(STAMP)
+	@mkdir -p out; RUNS=$(RUNS) PY=$(BIN)/python tests/stress.sh

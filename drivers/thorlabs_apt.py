@@ -811,7 +811,15 @@ class AptAxis(Axis):
                                  command=command)
 
     def _request(self, raw: bytes, reply_id: int, command: str) -> AptMessage:
+        """A read request, sent once more after a lost or corrupt reply: reads are
+        idempotent, and the link keeps a late first answer from passing for the second."""
         self._require_connected(command)
+        try:
+            return self.link.request(raw, reply_id, command, channel=self.channel)
+        except (DeviceTimeoutError, ProtocolError) as exc:
+            if not self.link.transport.is_open:
+                raise
+            log.warning("%s: %s; asking once more", self.name, exc.detail)
         return self.link.request(raw, reply_id, command, channel=self.channel)
 
     # ---- life cycle --------------------------------------------------------------------

@@ -380,7 +380,10 @@ class ZaberChain:
 
     def broadcast(self, command: str, *, axis: int = 0,
                   quiet_s: float | None = None) -> list[Reply]:
-        """Send ``command`` to every device (device 0); collect replies until quiet."""
+        """Send ``command`` to every device (device 0); collect replies until quiet.
+
+        The first reply may take the whole reply timeout (a busy host or a slow link);
+        after it, ``quiet_s`` without another reply ends the collection."""
         what = f"/0 {axis} {command}".rstrip()
         quiet = self.transport.timeout_s if quiet_s is None else quiet_s
         replies: list[Reply] = []
@@ -389,8 +392,9 @@ class ZaberChain:
             self.transport.write(format_command(0, axis, command, mid, self.checksums),
                                  command=what)
             while True:
+                wait = quiet if replies else max(quiet, self.transport.timeout_s)
                 try:
-                    reply = self._read_reply(time.monotonic() + quiet, what)
+                    reply = self._read_reply(time.monotonic() + wait, what)
                 except DeviceTimeoutError:
                     break
                 if reply.kind == "@" and reply.message_id == mid:
@@ -540,7 +544,9 @@ class ZaberAxis(Axis):
             self._clear_warnings()
         steps = self.to_steps(target)
         text = f"move abs {steps}"
-        reply = self._cmd(text)
+        # an absolute move is idempotent: after a lost or corrupt reply it is sent once more
+        # (with a new message id, so a late first reply cannot pass for the second)
+        reply = self._cmd(text, retries=1)
         if reply.ok:
             self._target = self.to_mm(steps)
             return

@@ -62,9 +62,8 @@ def write_config(tmp: Path, *, faults: Iterable[dict[str, Any]] = (),
                  **top: Any) -> tuple[Path, AligndConfig]:
     """The reference sim config with small sweeps, a fast clock, a target log and faults."""
     data = yaml.safe_load(SIM_YAML.read_text())
-    if reply_timeout_s is not None:
-        for c in data["controllers"]:
-            c["reply_timeout_s"] = reply_timeout_s
+    for c in data["controllers"]:  # far above a busy host's scheduling delays
+        c["reply_timeout_s"] = 1.0 if reply_timeout_s is None else reply_timeout_s
     data["procedure"].update(FAST_PROCEDURE if procedure is None else procedure)
     data["sim"].update(time_scale=time_scale, seed=seed, faults=list(faults),
                        target_log=str(tmp / "targets.jsonl"))
