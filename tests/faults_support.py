@@ -297,7 +297,6 @@ def main(argv: list[str]) -> int:
     from drivers.sim.direct import SceneCamera
 
     args = daemon_mod.build_parser().parse_args(argv)
-    cfg = load_config(args.config)
     real = os.environ.get("FAULTS_TOOLS") == "real"
     if os.environ.get("FAULTS_SIM_SOCKET"):
         _serve_snapshots(os.environ["FAULTS_SIM_SOCKET"])
@@ -317,7 +316,7 @@ def main(argv: list[str]) -> int:
         daemon_mod.ApiServer = functools.partial(  # type: ignore[misc]
             daemon_mod.ApiServer, request_timeout_s=float(os.environ["FAULTS_REQUEST_TIMEOUT_S"]))
 
-    def rig_factory() -> Any:
+    def rig_factory(cfg: AligndConfig) -> Any:
         rig = open_rig(cfg, seed=args.seed)
         sim = rig.on_close[0].__self__  # type: ignore[attr-defined]  # SimRig.stop's rig
         _SIM["rig"] = sim
