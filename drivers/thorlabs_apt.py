@@ -583,8 +583,20 @@ class AptLink:
                 self.transport.close()
 
     def read_info(self) -> HwInfo:
-        reply = self.request(pack_short(Msg.HW_REQ_INFO, dest=self.dest), Msg.HW_GET_INFO,
-                             "HW_REQ_INFO")
+        """HW_REQ_INFO, asked again (at most ``READ_ATTEMPTS`` times) after a lost or
+        corrupt reply."""
+        raw = pack_short(Msg.HW_REQ_INFO, dest=self.dest)
+        for _ in range(READ_ATTEMPTS - 1):
+            try:
+                return self._info_from(self.request(raw, Msg.HW_GET_INFO, "HW_REQ_INFO"))
+            except (DeviceTimeoutError, ProtocolError) as exc:
+                if not self.transport.is_open:
+                    raise
+                log.warning("%s: %s; asking again", self.device, exc.detail)
+        return self._info_from(self.request(raw, Msg.HW_GET_INFO, "HW_REQ_INFO"))
+
+    @staticmethod
+    def _info_from(reply: AptMessage) -> HwInfo:
         assert reply.data is not None
         return unpack_hw_info(reply.data)
 

@@ -307,7 +307,7 @@ class ZaberChain:
         for r in replies:
             if r.ok and r.data.strip() != "1":
                 log.info("%s: enabling reply checksums on device %d", self.name, r.device)
-                self.command(r.device, 0, "set comm.checksum 1")
+                self.command(r.device, 0, "set comm.checksum 1", retries=RETRIES)
 
     # ---- exchanges ---------------------------------------------------------------
     def _take_id(self) -> int:
@@ -509,7 +509,7 @@ class ZaberAxis(Axis):
             have = self._get_int(setting)
             if abs(have - value) > max(1, 0.01 * value):
                 log.info("%s: set %s %d (was %d)", self.name, setting, value, have)
-                self._checked(f"set {setting} {value}")
+                self._checked(f"set {setting} {value}", retries=RETRIES)
 
     def close(self) -> None:
         if not self._connected:
