@@ -17,7 +17,7 @@ trap 'kill "${hogs[@]}" 2>/dev/null' EXIT
 green=0
 for i in $(seq "$RUNS"); do
     start=$(date +%s)
-    if "$PY" -m pytest -q -p no:cacheprovider "$@" > "out/stress-$i.log" 2>&1; then
+    if "$PY" -m pytest -p no:cacheprovider "$@" > "out/stress-$i.log" 2>&1; then
         green=$((green + 1)); verdict=green
     else
         verdict=RED
