@@ -18,7 +18,8 @@ from drivers.config import CameraConfig, ControllerConfig, SimConfig
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: a tolerance or size of .inf/.nan is a config error, not a value
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class HolderConfig(Strict):
@@ -55,6 +56,14 @@ class ProcedureConfig(Strict):
     pixel_size_tolerance: float = Field(0.15, gt=0, lt=1,
                                         description="accepted calibration/config disagreement")
     precheck: PrecheckConfig = PrecheckConfig()
+
+    @model_validator(mode="after")
+    def _two_correction_axes(self) -> ProcedureConfig:
+        a, b = self.correction_axes
+        if a == b:
+            raise ValueError(f"correction_axes names {a!r} twice; the correction needs two "
+                             "different linear axes, e.g. [x, y]")
+        return self
 
 
 class DaemonConfig(Strict):
