@@ -11,7 +11,14 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from alignd.errors import ConfigError
 from drivers.config import CameraConfig, ControllerConfig, SimConfig
@@ -57,13 +64,13 @@ class ProcedureConfig(Strict):
                                         description="accepted calibration/config disagreement")
     precheck: PrecheckConfig = PrecheckConfig()
 
-    @model_validator(mode="after")
-    def _two_correction_axes(self) -> ProcedureConfig:
-        a, b = self.correction_axes
-        if a == b:
-            raise ValueError(f"correction_axes names {a!r} twice; the correction needs two "
-                             "different linear axes, e.g. [x, y]")
-        return self
+    @field_validator("correction_axes")
+    @classmethod
+    def _two_different(cls, axes: tuple[str, str]) -> tuple[str, str]:
+        if axes[0] == axes[1]:
+            raise ValueError(f"names {axes[0]!r} twice; the correction needs two different "
+                             "linear axes, e.g. [x, y]")
+        return axes
 
 
 class DaemonConfig(Strict):
