@@ -196,3 +196,31 @@ def test_watchdog_is_fed_through_a_slow_homing_of_three_axes() -> None:
     gaps.append(clock.now() - last["ping"])
     # pinged at least every quarter of WatchdogSec (+ one poll), never near 60 s
     assert max(gaps) <= 60.0 / 4 + 1.0, max(gaps)
+
+
+def test_identity_warnings_at_connect_show_in_status() -> None:
+    """An SMC100 answering URS100BCC where the config says URS75BCC: the daemon runs, and
+    ``status`` carries the warning naming both."""
+    from drivers.newport_smc100 import make_axes as smc100_axes
+    from drivers.sim.smc100_emu import Smc100Emulator
+    from drivers.sim.smc100_emu import physics_for as smc100_physics
+
+    clock = ManualClock()
+    cfg = {"role": "turntable", "address": 1, "units": "deg", "stage": "URS75BCC",
+           "soft_limits": {"min": -30.0, "max": 30.0}}
+    ctl0 = ControllerConfig(name="turntable", protocol="smc100", port="sim",
+                            axes=[cfg])  # type: ignore[list-item]
+    sim = SimAxis("tt", smc100_physics(ctl0.axes[0]), clock, np.random.default_rng(0))
+    emu = Smc100Emulator("turntable", {1: sim}, clock, stage="URS100BCC")
+    with EmulatorServer(emu, "tcp") as srv:
+        ctl = ctl0.model_copy(update={"port": srv.url})
+
+        def factory() -> Rig:
+            (axis,) = smc100_axes(ctl)
+            return Rig(axes={"turntable": axis}, cameras={})
+
+        with daemon_with(factory) as d:
+            wait_until(lambda: d.state == "idle", timeout_s=20)
+            assert d.status()["warnings"] == [
+                "turntable: controller reports stage 'URS100BCC' where the config says "
+                "'URS75BCC' (same units and travel as far as known); check the config"]
