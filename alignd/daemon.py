@@ -637,6 +637,11 @@ class Daemon:
         return cfg, note
 
     def _require_worker(self) -> None:
+        if self._worker.ident is None and not self._stopping.is_set():
+            # the API may answer before the worker thread is started: that is "starting"
+            raise Refused(HTTPStatus.CONFLICT, "starting",
+                          "alignd is still connecting the hardware; try again shortly",
+                          state=self._state)
         if not self._worker.is_alive():
             raise Refused(HTTPStatus.SERVICE_UNAVAILABLE, "fault",
                           "the hardware worker is not running (see the log); restart alignd",

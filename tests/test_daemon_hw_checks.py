@@ -224,3 +224,23 @@ def test_identity_warnings_at_connect_show_in_status() -> None:
             assert d.status()["warnings"] == [
                 "turntable: controller reports stage 'URS100BCC' where the config says "
                 "'URS75BCC' (same units and travel as far as known); check the config"]
+
+
+def test_a_run_requested_before_the_worker_thread_runs_is_starting_not_a_fault() -> None:
+    """The API listens a moment before the worker thread starts (found by ``make demo``
+    under load: "the hardware worker is not running"); such a request is "starting", which
+    ``alignctl`` waits out."""
+    from alignd.api import Refused
+    from alignd.store import Store
+
+    tmp = short_tmp()
+    store = Store(tmp / "state").open()
+    try:
+        d = Daemon(load_config(SIM_CONFIG), store, lambda: Rig(axes={}, cameras={}),
+                   procedures={"check": lambda *a, **k: None})
+        with pytest.raises(Refused) as err:
+            d.start_run("check", "user", ROOT_PEER)
+        assert (err.value.code, err.value.http_status) == ("starting", 409)
+    finally:
+        store.close()
+        shutil.rmtree(tmp, ignore_errors=True)
