@@ -82,7 +82,7 @@ def test_a_camera_without_frames_faults_at_start_and_reset_rechecks(how: str) ->
     top = BenchCamera("top", "/dev/video0")
     side = BenchCamera("side", "/dev/v4l/by-id/usb-side-cam", broken=how)
 
-    def factory(_cfg: Any = None) -> Rig:
+    def factory(_cfg: Any) -> Rig:
         return Rig(axes={}, cameras={"top": top, "side": side})
 
     with daemon_with(factory) as d:
@@ -177,7 +177,7 @@ def test_watchdog_is_fed_through_a_slow_homing_of_three_axes() -> None:
         ctl = ControllerConfig(name="platform", protocol="zaber", port=srv.url,
                                axes=axis_cfgs)  # type: ignore[arg-type]
 
-        def factory(_cfg: Any = None) -> Rig:
+        def factory(_cfg: Any) -> Rig:
             axes = make_axes(ctl)
             for ax in axes:
                 ax._sleep, ax._now = poll_sleep, clock.now
@@ -215,7 +215,7 @@ def test_identity_warnings_at_connect_show_in_status() -> None:
     with EmulatorServer(emu, "tcp") as srv:
         ctl = ctl0.model_copy(update={"port": srv.url})
 
-        def factory() -> Rig:
+        def factory(_cfg: Any) -> Rig:
             (axis,) = smc100_axes(ctl)
             return Rig(axes={"turntable": axis}, cameras={})
 
@@ -236,7 +236,7 @@ def test_a_run_requested_before_the_worker_thread_runs_is_starting_not_a_fault()
     tmp = short_tmp()
     store = Store(tmp / "state").open()
     try:
-        d = Daemon(load_config(SIM_CONFIG), store, lambda: Rig(axes={}, cameras={}),
+        d = Daemon(load_config(SIM_CONFIG), store, lambda _cfg: Rig(axes={}, cameras={}),
                    procedures={"check": lambda *a, **k: None})
         with pytest.raises(Refused) as err:
             d.start_run("check", "user", ROOT_PEER)
