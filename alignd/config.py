@@ -11,14 +11,22 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from alignd.errors import ConfigError
 from drivers.config import CameraConfig, ControllerConfig, SimConfig
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: a tolerance or size of .inf/.nan is a config error, not a value
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class HolderConfig(Strict):
@@ -55,6 +63,14 @@ class ProcedureConfig(Strict):
     pixel_size_tolerance: float = Field(0.15, gt=0, lt=1,
                                         description="accepted calibration/config disagreement")
     precheck: PrecheckConfig = PrecheckConfig()
+
+    @field_validator("correction_axes")
+    @classmethod
+    def _two_different(cls, axes: tuple[str, str]) -> tuple[str, str]:
+        if axes[0] == axes[1]:
+            raise ValueError(f"names {axes[0]!r} twice; the correction needs two different "
+                             "linear axes, e.g. [x, y]")
+        return axes
 
 
 class DaemonConfig(Strict):

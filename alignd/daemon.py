@@ -26,6 +26,7 @@ import collections
 import contextlib
 import inspect
 import logging
+import math
 import os
 import queue
 import signal
@@ -45,11 +46,13 @@ from alignd.client import resolve_socket
 from alignd.config import AligndConfig, config_hash, frame_keeper, load_config, run_footprint
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
+from drivers.errors import CameraError
 
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_USAGE, EXIT_FAULT = 0, 2, 3
 DEFAULT_STOP_TIMEOUT_S = 10.0
+CAMERA_CHECK_TIMEOUT_S = 5.0  # one frame from each camera at start and after reset
 EVENT_BUFFER = 5000  # live progress events kept in memory (all runs)
 BUSY_STATES = ("aligning", "checking")
 
@@ -61,8 +64,10 @@ RigFactory = Callable[[AligndConfig], Any]  # config -> alignd.procedures.rig.Ri
 class Notifier:
     """sd_notify over ``$NOTIFY_SOCKET`` (a datagram socket; a no-op outside systemd)."""
 
-    def __init__(self, env: Mapping[str, str] | None = None, watchdog: bool = True) -> None:
+    def __init__(self, env: Mapping[str, str] | None = None, watchdog: bool = True,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         env = os.environ if env is None else env
+        self._clock = clock
         addr = env.get("NOTIFY_SOCKET") or None
         if addr and addr.startswith("@"):
             addr = "\0" + addr[1:]  # abstract namespace
@@ -71,7 +76,7 @@ class Notifier:
         usec, pid = env.get("WATCHDOG_USEC"), env.get("WATCHDOG_PID")
         if watchdog and usec and usec.isdigit() and (not pid or pid == str(os.getpid())):
             self.watchdog_s = int(usec) / 1e6
-        self._last_ping = 0.0
+        self._last_ping = -math.inf
         self._last_status = ""
 
     def send(self, message: str) -> bool:
@@ -107,7 +112,7 @@ class Notifier:
         """Ping if due (at a quarter of the watchdog interval); cheap to call often."""
         if self.watchdog_s is None:
             return
-        now = time.monotonic()
+        now = self._clock()
         if now - self._last_ping >= self.watchdog_s / 4:
             self._last_ping = now
             self.send("WATCHDOG=1")
@@ -160,6 +165,13 @@ def _identities(rig: Any) -> dict[str, Any]:
                                                       ).items()}
 
 
+def _camera_state(source: str, state: str, *, size: tuple[int, int] | None = None,
+                  error: str | None = None) -> dict[str, Any]:
+    """One camera in ``status``: its source, ok / fault / not checked, frame size, why."""
+    return {"source": source, "state": state, "size": list(size) if size else None,
+            "error": error}
+
+
 def _accepts(fn: Callable[..., Any], name: str) -> bool:
     try:
         return name in inspect.signature(fn).parameters
@@ -206,6 +218,9 @@ class Daemon:
         self._stopping = threading.Event()
         self._rig: Any = None
         self._devices: dict[str, Any] = {}
+        self._cameras: dict[str, dict[str, Any]] = {
+            c.role: _camera_state(c.source, "not checked") for c in cfg.cameras}
+        self._warnings: list[str] = []
         self._worker = threading.Thread(target=self._worker_main, name="alignd-worker",
                                         daemon=True)
         self._started_at = time.monotonic()
@@ -284,11 +299,20 @@ class Daemon:
     def _open_rig(self) -> None:
         self._set_state("starting")
         rig = None
+        with self._lock:
+            self._cameras = {c.role: _camera_state(c.source, "not checked")
+                             for c in self.cfg.cameras}
         try:
             rig = self.rig_factory(self.cfg)
+            self._feed_watchdog_while_axes_wait(rig)
             if not getattr(rig, "identities", None) and hasattr(rig, "connect"):
                 rig.connect()
+            self._check_cameras(rig)
         except Exception as exc:  # any failure leaves the daemon up, in fault, saying why
+            if isinstance(exc, CameraError) and exc.device in self._cameras:
+                with self._lock:  # a camera that could not even be opened
+                    self._cameras[exc.device] = _camera_state(exc.port or "?", "fault",
+                                                              error=exc.detail)
             if rig is not None:  # release what was opened (ports, simulator threads)
                 with contextlib.suppress(Exception):
                     rig.stop_all()
@@ -302,6 +326,7 @@ class Daemon:
             return
         self._rig = rig
         self._devices = _identities(rig)
+        self._warnings = list(getattr(rig, "warnings", None) or [])
         self._set_state("idle")
         log.info("rig ready: %s", ", ".join(sorted(self._devices)) or "(no identities)")
 
@@ -316,6 +341,37 @@ class Daemon:
             fn(cfg)
         log.info("config %s reloaded: hash %s -> %s", self.config_path, old[:12],
                  self.config_hash[:12])
+
+    def _feed_watchdog_while_axes_wait(self, rig: Any) -> None:
+        """Ping the watchdog from every axis' poll loop: a homing may take minutes (up to
+        ``home_timeout_s`` per axis, one after another) without a progress event."""
+        axes = getattr(rig, "axes", None)
+        for ax in axes.values() if isinstance(axes, dict) else ():
+            hooks = getattr(ax, "on_wait", None)
+            if isinstance(hooks, list) and self.notifier.watchdog not in hooks:
+                hooks.append(self.notifier.watchdog)
+
+    def _check_cameras(self, rig: Any) -> None:
+        """Grab one frame from every camera of the rig; raise ``CameraError`` naming each
+        camera (and its source) that gives none. The states show in ``status``."""
+        cameras = getattr(rig, "cameras", None)
+        failures: list[str] = []
+        for role, cam in (cameras.items() if isinstance(cameras, dict) else ()):
+            source = str(getattr(cam, "source", "?"))
+            self.notifier.watchdog()
+            try:
+                cam.open()
+                frame = cam.grab(timeout_s=CAMERA_CHECK_TIMEOUT_S)
+                h, w = frame.image.shape[:2]
+                state = _camera_state(source, "ok", size=(int(w), int(h)))
+            except Exception as exc:  # any camera failure is reported, not raised here
+                detail = exc.detail if isinstance(exc, CameraError) else str(exc)
+                state = _camera_state(source, "fault", error=detail)
+                failures.append(f"camera {role} (source {source}): {detail}")
+            with self._lock:
+                self._cameras[role] = state
+        if failures:
+            raise CameraError("no frame at start-up from " + "; ".join(failures))
 
     def _close_rig(self) -> None:
         rig, self._rig = self._rig, None
@@ -446,6 +502,8 @@ class Daemon:
                 "last_run": dict(self._last_run) if self._last_run else None,
                 "name": self.cfg.name, "version": __version__,
                 "config_hash": self.config_hash, "devices": self._devices,
+                "cameras": {role: dict(c) for role, c in self._cameras.items()},
+                "warnings": list(self._warnings),
                 "pid": os.getpid(), "uptime_s": round(time.monotonic() - self._started_at, 1),
                 "state_dir": str(self.store.state_dir), "socket": self.socket_path,
                 "runs_refused": refused,
@@ -579,6 +637,11 @@ class Daemon:
         return cfg, note
 
     def _require_worker(self) -> None:
+        if self._worker.ident is None and not self._stopping.is_set():
+            # the API may answer before the worker thread is started: that is "starting"
+            raise Refused(HTTPStatus.CONFLICT, "starting",
+                          "alignd is still connecting the hardware; try again shortly",
+                          state=self._state)
         if not self._worker.is_alive():
             raise Refused(HTTPStatus.SERVICE_UNAVAILABLE, "fault",
                           "the hardware worker is not running (see the log); restart alignd",

@@ -13,11 +13,14 @@ import logging
 import math
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Self
 
+from drivers import stages
 from drivers.config import AxisConfig
 from drivers.errors import (
+    ConfigMismatchError,
     DeviceFault,
     DeviceTimeoutError,
     LimitError,
@@ -77,6 +80,11 @@ class Axis(ABC):
         self.position_known = False  # False until homed or verified; set False on disconnect
         self._sleep = time.sleep  # injectable, with _now, so tests need not wait
         self._now = time.monotonic
+        # Called on every poll while the axis waits for the controller (homing, moves):
+        # the daemon feeds the systemd watchdog from here, as a homing can take minutes.
+        self.on_wait: list[Callable[[], None]] = []
+
+    reports_serial = True  # False for controllers with no serial number to ask for
 
     # ---- primitives each driver implements -------------------------------------------
     @abstractmethod
@@ -111,7 +119,62 @@ class Axis(ABC):
     @abstractmethod
     def port(self) -> str: ...
 
+    def controller_limits(self) -> tuple[float, float] | None:
+        """The travel limits the controller itself enforces (read from it), in units;
+        None where the protocol has nothing to ask (the stage identity stands for it)."""
+        return None
+
     # ---- shared behaviour ------------------------------------------------------------
+    def _wait(self, dt: float) -> None:
+        """One poll interval of waiting for the controller (every wait goes through here)."""
+        for fn in self.on_wait:
+            fn()
+        self._sleep(dt)
+
+    def check_identity(self, ident: Identity) -> list[str]:
+        """Compare what the controller says with the config; return warnings.
+
+        Raises ``ConfigMismatchError`` where running would be unsafe: the controller's own
+        limits do not contain the configured soft limits, or the stage it reports moves in
+        other units or over another travel than the configured one. A different model of
+        the same units and travel, an unknown reported model or an empty serial number
+        is a warning naming both.
+        """
+        cfg = self.config
+        warnings: list[str] = []
+        lim = cfg.soft_limits
+        reported = self.controller_limits()
+        if reported is not None:
+            lo, hi = reported
+            if not (lo <= lim.min and lim.max <= hi):
+                raise ConfigMismatchError(
+                    f"configured soft limits [{lim.min:g}, {lim.max:g}] {cfg.units} lie "
+                    f"outside the limits the controller reports [{lo:.6g}, {hi:.6g}] "
+                    f"{cfg.units}; fix soft_limits or the controller's limits",
+                    device=self.name, port=self.port)
+        said, want = ident.stage.strip(), cfg.stage.strip()
+        if said and want and said.upper() != want.upper():
+            got, conf = stages.lookup(said), stages.lookup(want)
+            if got is not None and conf is not None and got.name == conf.name:
+                pass  # the same model spelt differently (e.g. a -E03 suffix)
+            elif got is not None and conf is not None and (
+                    got.units != conf.units or got.travel != conf.travel):
+                raise ConfigMismatchError(
+                    f"controller reports stage {got.name} ({got.units}, travel "
+                    f"{_travel(got)}) where the config says {conf.name} ({conf.units}, "
+                    f"travel {_travel(conf)}): units or travel would be wrong",
+                    device=self.name, port=self.port)
+            else:
+                warnings.append(f"{self.name}: controller reports stage {said!r} where the "
+                                f"config says {want!r} (same units and travel as far as "
+                                "known); check the config")
+        if self.reports_serial and ident.serial.strip() in ("", "0"):
+            warnings.append(f"{self.name}: {ident.vendor} {ident.model} reports no serial "
+                            f"number (got {ident.serial!r}); runs cannot name the unit")
+        for w in warnings:
+            log.warning("%s", w)
+        return warnings
+
     def __enter__(self) -> Self:
         self.connect()
         return self
@@ -215,4 +278,10 @@ class Axis(ABC):
                 self.stop()
                 raise DeviceTimeoutError(f"move did not finish within {timeout_s:.1f} s",
                                          device=self.name, port=self.port, command=command)
-            self._sleep(self.config.poll_interval_s)
+            self._wait(self.config.poll_interval_s)
+
+
+def _travel(model: stages.StageModel) -> str:
+    if model.travel is None:
+        return "continuous"
+    return f"{model.travel[0]:g}..{model.travel[1]:g}"

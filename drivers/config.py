@@ -10,11 +10,14 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from drivers.stages import resolve as resolve_stage
+
 Role = Literal["turntable", "translator", "x", "y", "z"]
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: a limit, tolerance or speed of .inf/.nan is a config error
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class SoftLimits(Strict):
@@ -60,6 +63,31 @@ class ControllerConfig(Strict):
     baudrate: int | None = None
     reply_timeout_s: float = Field(0.5, gt=0)
     axes: list[AxisConfig] = Field(..., min_length=1)
+
+    @model_validator(mode="after")
+    def _stages_known_and_limits_inside_travel(self) -> ControllerConfig:
+        """Every axis names a stage this protocol knows, in its units, and its soft limits
+        lie inside that stage's travel (else the stage drives into its limit switch)."""
+        for i, ax in enumerate(self.axes):
+            where = f"axes.{i} ({ax.role})"
+            try:
+                model = resolve_stage(self.protocol, ax.stage, ax.units)
+            except ValueError as exc:
+                raise ValueError(f"{where}: {exc}") from None
+            if model is None:
+                continue
+            if model.units != ax.units:
+                raise ValueError(f"{where}: stage {model.name} moves in {model.units}, the "
+                                 f"axis is configured in {ax.units}")
+            if model.travel is not None:
+                lo, hi = model.travel
+                lim = ax.soft_limits
+                if not (lo <= lim.min and lim.max <= hi):
+                    raise ValueError(
+                        f"{where}: soft limits [{lim.min:g}, {lim.max:g}] {ax.units} lie "
+                        f"outside the travel of stage {model.name} [{lo:g}, {hi:g}] "
+                        f"{ax.units}")
+        return self
 
 
 class CameraConfig(Strict):

@@ -61,6 +61,10 @@ class DeviceFault(DeviceError):
     """The controller reports a fault: stall, following error, rejected command, not homed."""
 
 
+class ConfigMismatchError(DeviceError):
+    """The controller disagrees with the config in a way that changes units or travel."""
+
+
 class MissedTargetError(DeviceFault):
     """The read-back position stayed outside the deadband after all retries."""
 

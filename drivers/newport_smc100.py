@@ -279,6 +279,8 @@ _port_users: weakref.WeakKeyDictionary[SerialTransport, set[int]] = weakref.Weak
 class Smc100Axis(Axis):
     """One SMC100 controller (one axis) at ``config.address`` on a possibly shared port."""
 
+    reports_serial = False  # the ASCII protocol has no serial-number query
+
     def __init__(self, config: AxisConfig, transport: SerialTransport,
                  name: str | None = None) -> None:
         super().__init__(config, name)
@@ -493,6 +495,9 @@ class Smc100Axis(Axis):
         return (self.query("SL", "?", convert=parse_float),
                 self.query("SR", "?", convert=parse_float))
 
+    def controller_limits(self) -> tuple[float, float]:
+        return self.software_limits()
+
     def stop(self) -> None:
         """``ST``; a refusal is logged, not raised (stopping a stopped axis is fine)."""
         data = format_command(self.address, "ST")
@@ -581,7 +586,7 @@ class Smc100Axis(Axis):
                 raise DeviceTimeoutError(f"homing did not finish within {timeout:.1f} s",
                                          device=self.name, port=self.port,
                                          command=self._cmd_text("OR"))
-            self._sleep(cfg.poll_interval_s)
+            self._wait(cfg.poll_interval_s)
         self.position_known = True
         self._apply_profile()
 

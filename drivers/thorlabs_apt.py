@@ -1000,7 +1000,7 @@ class AptAxis(Axis):
                 self.stop()
                 raise DeviceTimeoutError(f"no MOVE_HOMED within {timeout:.1f} s",
                                          device=self.name, port=self.port, command=cmd)
-            self._sleep(self.config.poll_interval_s)
+            self._wait(self.config.poll_interval_s)
         self.position_known = True
         log.info("%s: homed", self.name)
 

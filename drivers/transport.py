@@ -20,6 +20,8 @@ from drivers.errors import DeviceTimeoutError, PortBusyError, TransportError
 
 log = logging.getLogger(__name__)
 
+WRITE_TIMEOUT_FLOOR_S = 2.0
+
 try:  # pyserial's POSIX backend lets termios.error (not an OSError) escape, e.g. tcdrain
     import termios  # on a pty whose other end has gone
 
@@ -47,8 +49,13 @@ class SerialTransport:
     def open(self) -> None:
         if self._ser is not None:
             return
+        # pyserial raises a write timeout when the deadline passed by the time a write
+        # returns, even if every byte went out: a process descheduled for half a second on
+        # a loaded machine would see a phantom timeout. A floor keeps that from happening
+        # while a write really blocked (flow control held off) still ends in bounded time.
+        write_timeout = max(self.timeout_s, WRITE_TIMEOUT_FLOOR_S)
         kwargs: dict[str, object] = {"baudrate": self.baudrate, "timeout": self.timeout_s,
-                                     "write_timeout": self.timeout_s, "do_not_open": True}
+                                     "write_timeout": write_timeout, "do_not_open": True}
         if not self.url.startswith(("socket://", "rfc2217://", "loop://")):
             kwargs.update(rtscts=self.rtscts, xonxoff=self.xonxoff)
         try:

@@ -108,8 +108,12 @@ FULL_STEP_MM: dict[str, float] = {
     "LSM": 0.6096 / 200.0,  # the older T-/A-series LSM family shares the lead screw
 }
 DEFAULT_RESOLUTION = 64
+# Setting units of A-/X-series devices (Zaber "Set Target Speed" / "Set Acceleration"
+# command references): speed = data / 1.6384 microsteps/s, acceleration =
+# data x 10000 / 1.6384 microsteps/s^2, accel data at most 32767.
 SPEED_UNITS_PER_STEP_S = 1.6384  # maxspeed data per microstep/s
-ACCEL_UNITS_PER_STEP_S2 = 1.6384 / 10.0  # accel data per microstep/s^2
+ACCEL_UNITS_PER_STEP_S2 = 1.6384 / 10000.0  # accel data per microstep/s^2
+ACCEL_DATA_MAX = 32767
 
 # Device ids the emulator reports; anything else is shown as "device id N".
 # (The numbers for the X-LSM sizes were not verifiable against Zaber's device database.)
@@ -450,6 +454,14 @@ class ZaberAxis(Axis):
     def to_mm(self, steps: int) -> float:
         return steps * self.microstep_mm
 
+    def speed_data(self, mm_s: float) -> int:
+        """mm/s -> ``maxspeed`` data (microsteps/s x 1.6384)."""
+        return round(mm_s / self.microstep_mm * SPEED_UNITS_PER_STEP_S)
+
+    def accel_data(self, mm_s2: float) -> int:
+        """mm/s^2 -> ``accel`` data (microsteps/s^2 x 1.6384 / 10000)."""
+        return round(mm_s2 / self.microstep_mm * ACCEL_UNITS_PER_STEP_S2)
+
     @property
     def port(self) -> str:
         return self.chain.url
@@ -502,9 +514,14 @@ class ZaberAxis(Axis):
 
     def _apply_motion_settings(self) -> None:
         """Make the device's maxspeed/accel match the config, so move timeouts hold."""
-        steps_per_mm = 1.0 / self.microstep_mm
-        want = {"maxspeed": round(self.config.speed * steps_per_mm * SPEED_UNITS_PER_STEP_S),
-                "accel": round(self.config.accel * steps_per_mm * ACCEL_UNITS_PER_STEP_S2)}
+        want = {"maxspeed": self.speed_data(self.config.speed),
+                "accel": self.accel_data(self.config.accel)}
+        if not 1 <= want["accel"] <= ACCEL_DATA_MAX:
+            limit = ACCEL_DATA_MAX / ACCEL_UNITS_PER_STEP_S2 * self.microstep_mm
+            raise DeviceError(f"accel {self.config.accel:g} mm/s^2 is {want['accel']} in "
+                              f"device units, outside 1..{ACCEL_DATA_MAX} (at most "
+                              f"{limit:.0f} mm/s^2 at this resolution): lower axes.accel",
+                              device=self.name, port=self.port, command="set accel")
         for setting, value in want.items():
             have = self._get_int(setting)
             if abs(have - value) > max(1, 0.01 * value):
@@ -525,7 +542,11 @@ class ZaberAxis(Axis):
         version = self._checked("get version", device_scope=True, retries=RETRIES).data
         peripheral = self._get_int("peripheralid")
         model = DEVICE_IDS.get(device_id, f"Zaber device id {device_id}")
-        stage = self.config.stage if peripheral == 0 else f"peripheral id {peripheral}"
+        # An integrated device (no peripheral) is its own stage: report what it says it is.
+        if peripheral != 0:
+            stage = f"peripheral id {peripheral}"
+        else:
+            stage = DEVICE_IDS.get(device_id, self.config.stage)
         return Identity(vendor="Zaber", model=model, serial=serial.strip(),
                         firmware=version.strip(), stage=stage)
 
@@ -566,6 +587,10 @@ class ZaberAxis(Axis):
 
     def stop(self) -> None:
         self._checked("stop", retries=RETRIES)
+
+    def controller_limits(self) -> tuple[float, float]:
+        """``limit.min`` / ``limit.max``: the device refuses moves outside them."""
+        return self.to_mm(self._get_int("limit.min")), self.to_mm(self._get_int("limit.max"))
 
     def position(self) -> float:
         return self.to_mm(self._get_int("pos"))

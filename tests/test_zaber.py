@@ -9,6 +9,7 @@ import pytest
 
 from drivers.config import AxisConfig, ControllerConfig, FaultConfig
 from drivers.errors import (
+    DeviceError,
     DeviceFault,
     DeviceTimeoutError,
     LimitError,
@@ -147,7 +148,7 @@ CONNECT = [
     (manual_ck("/1 0 2 get system.axiscount"), manual_ck("@01 0 02 OK IDLE WR 1")),
     (manual_ck("/1 1 3 get resolution"), manual_ck("@01 1 03 OK IDLE WR 64")),
     (manual_ck("/1 1 4 get maxspeed"), manual_ck("@01 1 04 OK IDLE WR 172010")),
-    (manual_ck("/1 1 5 get accel"), manual_ck("@01 1 05 OK IDLE WR 68804")),
+    (manual_ck("/1 1 5 get accel"), manual_ck("@01 1 05 OK IDLE WR 69")),
 ]
 
 
@@ -172,7 +173,7 @@ def test_transcript_connect_sets_speed_and_accel_from_config() -> None:
         *CONNECT[:4],
         (manual_ck("/1 1 4 get maxspeed"), manual_ck("@01 1 04 OK IDLE WR 153600")),
         (manual_ck("/1 1 5 set maxspeed 172010"), manual_ck("@01 1 05 OK IDLE WR 0")),
-        (manual_ck("/1 1 6 get accel"), manual_ck("@01 1 06 OK IDLE WR 68804")),
+        (manual_ck("/1 1 6 get accel"), manual_ck("@01 1 06 OK IDLE WR 69")),
     ]
     tr = ScriptedTransport(script)
     ZaberAxis(x_config(), ZaberChain("s", name="platform", transport=tr)).connect()
@@ -327,7 +328,7 @@ def test_emulator_settings_and_rejections() -> None:
     assert emu.handle(b"/1 get comm.packet.size.max\n") == b"@01 0 OK IDLE WR 80\r\n"
     assert emu.handle(b"/1 get version.build\n").startswith(b"@01 0 OK IDLE WR ")
     assert emu.handle(b"/1 1 get maxspeed\n") == b"@01 1 OK IDLE WR 172010\r\n"  # 5 mm/s
-    assert emu.handle(b"/1 1 get accel\n") == b"@01 1 OK IDLE WR 68804\r\n"  # 20 mm/s^2
+    assert emu.handle(b"/1 1 get accel\n") == b"@01 1 OK IDLE WR 69\r\n"  # 20 mm/s^2
     assert emu.handle(b"/1 1 set maxspeed 344020\n") == b"@01 1 OK IDLE WR 0\r\n"
     assert emu.handle(b"/1 1 get maxspeed\n") == b"@01 1 OK IDLE WR 344020\r\n"
     assert emu.handle(b"/1 1 get nonsense\n") == b"@01 1 RJ IDLE WR BADCOMMAND\r\n"
@@ -590,3 +591,53 @@ def test_unreadable_reply_to_move_abs_is_sent_again_and_the_move_is_made(
         assert "retrying (1/2)" in caplog.text
         assert sim[1].targets[-1] == pytest.approx(30.0, abs=1e-4)
         ax.close()
+
+
+# ---- units the hardware holds us to (issue 9) -----------------------------------------
+# Zaber "Set Acceleration" (A-/X-series): actual acceleration = 10000 x data / 1.6384
+# microsteps/s^2, data at most 32767; "Set Target Speed": speed = data / 1.6384 microsteps/s.
+# Written out here from the manual, not imported from the driver or the emulator.
+XLSM_UM_PER_MICROSTEP = 0.047625
+
+
+def manual_accel_data(mm_s2: float) -> int:
+    return round(mm_s2 * 1000.0 / XLSM_UM_PER_MICROSTEP * 1.6384 / 10000.0)
+
+
+def test_accel_data_follows_the_manual_in_the_driver() -> None:
+    axis = ZaberAxis(x_config(), ZaberChain("s", name="platform",
+                                            transport=ScriptedTransport([])))
+    assert manual_accel_data(20.0) == 69  # 20 mm/s^2 on an X-LSM, not 68804
+    assert axis.accel_data(20.0) == 69
+    assert axis.speed_data(5.0) == round(5.0e3 / XLSM_UM_PER_MICROSTEP * 1.6384) == 172010
+
+
+def test_connect_sends_the_manuals_accel_data() -> None:
+    script = [
+        *CONNECT[:5],
+        (manual_ck("/1 1 5 get accel"), manual_ck("@01 1 05 OK IDLE WR 205")),
+        (manual_ck("/1 1 6 set accel 69"), manual_ck("@01 1 06 OK IDLE WR 0")),
+    ]
+    tr = ScriptedTransport(script)
+    ZaberAxis(x_config(), ZaberChain("s", name="platform", transport=tr)).connect()
+    assert not tr.script
+
+
+def test_accel_beyond_the_device_range_is_refused_before_sending() -> None:
+    # 32767 data = 9524 mm/s^2 on an X-LSM: anything above cannot be set on the device
+    tr = ScriptedTransport(list(CONNECT))
+    axis = ZaberAxis(x_config(accel=20000.0), ZaberChain("s", name="platform", transport=tr))
+    with pytest.raises(DeviceError, match=r"accel 20000 mm/s\^2 .* outside 1\.\.32767"):
+        axis.connect()
+    assert tr.script == CONNECT[4:]  # nothing sent after the resolution was read
+
+
+def test_emulator_accel_in_the_manuals_units_with_its_own_range_check() -> None:
+    emu, _, axes = make_chain(1)
+    assert emu.handle(b"/1 1 set accel 69\n") == b"@01 1 OK IDLE WR 0\r\n"
+    # 69 x 10000 / 1.6384 microsteps/s^2 x 0.047625 um = 20.06 mm/s^2
+    assert axes[1].p.accel == pytest.approx(69 * 1e4 / 1.6384 * XLSM_UM_PER_MICROSTEP / 1e3)
+    assert emu.handle(b"/1 1 set accel 32767\n") == b"@01 1 OK IDLE WR 0\r\n"
+    assert emu.handle(b"/1 1 set accel 68804\n") == b"@01 1 RJ IDLE WR BADDATA\r\n"
+    assert emu.handle(b"/1 1 set accel 0\n") == b"@01 1 RJ IDLE WR BADDATA\r\n"
+    assert emu.handle(b"/1 1 get accel\n") == b"@01 1 OK IDLE WR 32767\r\n"

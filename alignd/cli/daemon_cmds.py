@@ -101,6 +101,15 @@ def status_text(st: dict[str, Any]) -> str:
         if isinstance(ident, dict):
             lines.append(f"  {role:10s} {ident.get('vendor', '')} {ident.get('model', '')} "
                          f"s/n {ident.get('serial', '?')} fw {ident.get('firmware', '?')}")
+    for role, cam in sorted((st.get("cameras") or {}).items()):
+        if isinstance(cam, dict):
+            size = cam.get("size")
+            what = f"{size[0]}x{size[1]}" if cam.get("state") == "ok" and size else \
+                (cam.get("error") or "")
+            lines.append(f"  camera {role:6s} {cam.get('state', '?'):11s} source "
+                         f"{cam.get('source', '?')}" + (f": {what}" if what else ""))
+    for warning in st.get("warnings") or []:
+        lines.append(f"  warning: {warning}")
     return "\n".join(lines)
 
 

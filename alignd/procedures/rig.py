@@ -46,6 +46,7 @@ class Rig:
     name: str = "rig"
     identities: dict[str, Identity] = field(default_factory=dict)
     on_close: list[Callable[[], None]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)  # identity doubts found at connect
 
     # ---- lookup --------------------------------------------------------------------
     def axis(self, role: str) -> Axis:
@@ -60,10 +61,17 @@ class Rig:
 
     # ---- life cycle ------------------------------------------------------------------
     def connect(self) -> dict[str, Identity]:
-        """Connect every axis and open every camera; identify the axes (kept per run)."""
+        """Connect every axis and open every camera; identify the axes (kept per run).
+
+        Each axis' identity and the limits its controller reports are checked against
+        the config: a mismatch that changes units or travel raises
+        ``ConfigMismatchError``, a lesser one is logged and kept in ``warnings``.
+        """
+        self.warnings.clear()
         for role, ax in self.axes.items():
             ax.connect()
             self.identities[role] = ax.identify()
+            self.warnings += ax.check_identity(self.identities[role])
             log.info("%s: %s %s s/n %s fw %s on %s", role, self.identities[role].vendor,
                      self.identities[role].model, self.identities[role].serial,
                      self.identities[role].firmware, ax.port)

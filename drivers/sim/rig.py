@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Literal, Self
 
 import numpy as np
 
+from drivers import stages
 from drivers.config import AxisConfig, CameraConfig, ControllerConfig, SimConfig
 from drivers.sim.clock import Clock, ScaledClock
 from drivers.sim.emulator import Emulator, TargetLog
@@ -42,6 +43,18 @@ def _physics(protocol: str, axis: AxisConfig, sim: SimConfig) -> AxisPhysics:
         return dataclasses.replace(phys, backlash=w.turntable_backlash_deg)
     return dataclasses.replace(phys, backlash=w.backlash_mm,
                                repeatability=w.stage_repeatability_um / 1000.0)
+
+
+def _identity_kwargs(ctl: ControllerConfig) -> dict[str, object]:
+    """What each emulator reports as its stage: the model the config names (a simulated
+    controller answers ``ID?`` / device id / stage id as the configured stage would)."""
+    named = {ax.address: stages.resolve(ctl.protocol, ax.stage, ax.units) for ax in ctl.axes}
+    if ctl.protocol == "smc100":
+        return {"stage": {a: m.name for a, m in named.items() if m is not None}}
+    if ctl.protocol == "zaber":
+        return {"models": {a: m.name for a, m in named.items() if m is not None}}
+    first = named[min(named)]
+    return {"stage": first.name} if first is not None else {}
 
 
 class SimRig:
@@ -74,7 +87,8 @@ class SimRig:
                 by_address[ax.address] = sim_axis
                 self.axes[ax.role] = sim_axis
             cls = getattr(importlib.import_module(mod_name), cls_name)
-            self.emulators[ctl.name] = cls(ctl.name, by_address, self.clock)
+            self.emulators[ctl.name] = cls(ctl.name, by_address, self.clock,
+                                           **_identity_kwargs(ctl))
         self.world = World(sim.world, self.axes, streams[2])
         self.lock = threading.Lock()
         self.camera_configs = {c.role: c for c in cameras if c.source == "sim"}

@@ -186,6 +186,7 @@ class Smc100Emulator(Emulator):
         self.ctl: dict[int, _Controller] = {}
         for addr, ax in axes.items():
             st = stage.get(addr, "URS75BCC") if isinstance(stage, dict) else stage
+            st = st or "URS75BCC"
             self.ctl[addr] = self._power_on(addr, ax, st)
 
     def _power_on(self, addr: int, ax: SimAxis, stage: str) -> _Controller:

@@ -7,7 +7,8 @@ IDLE|BUSY WW data``, with a checksum when its ``comm.checksum`` is 1, and alerts
 IDLE WW`` when its ``comm.alert`` is 1 and a motion ends.
 
 Behaviour follows Zaber's ASCII Protocol Manual (firmware 6/7): positions in microsteps,
-``maxspeed`` in microsteps/s x 1.6384, ``accel`` in microsteps/s^2 x 1.6384 / 10; at
+``maxspeed`` in microsteps/s x 1.6384, ``accel`` in microsteps/s^2 x 1.6384 / 10000 (at most
+32767; data outside a setting's range is rejected with ``BADDATA``); at
 power-up the position reads 0 and the axis carries ``WR`` (no reference position) until it
 is homed (``set pos`` gives a reference but not a home: ``WH``); absolute moves without a
 reference are rejected (``RJ ... BADDATA``; the manual warns that motion commands "may respond
@@ -33,8 +34,11 @@ log = logging.getLogger(__name__)
 
 # X-LSM: 0.6096 mm lead screw, 200 full steps/turn, 64 microsteps/step -> 0.047625 um.
 XLSM_MICROSTEP_MM = 0.6096 / 200 / 64
+# "Set Acceleration" (A-/X-series, firmware 6+): actual acceleration =
+# 10000 x data / 1.6384 microsteps/s^2, the maximum data value is 32767.
 SPEED_FACTOR = 1.6384  # maxspeed data per microstep/s
-ACCEL_FACTOR = 1.6384 / 10.0  # accel data per microstep/s^2
+ACCEL_FACTOR = 1.6384e-4  # accel data per microstep/s^2
+ACCEL_MAX = 32767
 
 # Travel (mm) of the X-LSM sizes: inch-based lead screws, e.g. X-LSM050A = 2 in.
 XLSM_TRAVEL_MM = {"X-LSM025A": 25.4, "X-LSM050A": 50.8, "X-LSM100A": 101.6,
@@ -409,7 +413,7 @@ class ZaberEmulator(Emulator):
                 return False, "BADDATA"
             dev.maxspeed = n / SPEED_FACTOR / spm
         elif setting == "accel":
-            if n <= 0:
+            if not 1 <= n <= ACCEL_MAX:
                 return False, "BADDATA"
             dev.accel = n / ACCEL_FACTOR / spm
             dev.axis.p.accel = dev.accel
