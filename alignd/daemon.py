@@ -43,6 +43,7 @@ from alignd.client import resolve_socket
 from alignd.config import AligndConfig, config_hash, frame_keeper, load_config
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
+from alignd.web.frames import LiveFrames, grab_previews, tap_cameras
 
 log = logging.getLogger(__name__)
 
@@ -197,6 +198,8 @@ class Daemon:
                                         daemon=True)
         self._started_at = time.monotonic()
         self._status_sent = 0.0
+        self.live = LiveFrames()  # the cameras' latest grabs, for the web dashboard
+        self.faults = 0  # times the daemon entered the fault state (metrics)
 
     # ---- lifecycle ------------------------------------------------------------------
     def start(self) -> None:
@@ -236,6 +239,8 @@ class Daemon:
     # ---- the worker -----------------------------------------------------------------
     def _set_state(self, state: str, fault: str | None = None) -> None:
         with self._cond:
+            if state == "fault" and self._state != "fault":
+                self.faults += 1
             self._state = state
             self._fault = fault
             self._cond.notify_all()
@@ -247,10 +252,11 @@ class Daemon:
             while True:
                 self.notifier.watchdog()
                 try:
-                    job = self._jobs.get(timeout=self.notifier.tick_s)
+                    job = self._jobs.get(timeout=self.live.wait_s(self.notifier.tick_s))
                 except queue.Empty:
                     if self._stopping.is_set():
                         break
+                    self._preview()
                     continue
                 if job is None:
                     break
@@ -283,15 +289,28 @@ class Daemon:
                 log.exception("opening the rig failed")
             reason = f"cannot open the rig: {exc}"
             log.error("%s", reason)
+            self.live.set_unavailable(reason)
             self._set_state("fault", reason)
             return
         self._rig = rig
         self._devices = _identities(rig)
+        cameras = getattr(rig, "cameras", None)
+        if isinstance(cameras, dict):
+            tap_cameras(cameras, self.live)
+        self.live.set_unavailable(None)
         self._set_state("idle")
         log.info("rig ready: %s", ", ".join(sorted(self._devices)) or "(no identities)")
 
+    def _preview(self) -> None:
+        """While idle and watched, grab preview frames for the dashboard (the worker owns
+        the cameras; the web server never opens one)."""
+        cameras = getattr(self._rig, "cameras", None)
+        if self._state == "idle" and isinstance(cameras, dict) and self.live.preview_due():
+            grab_previews(cameras, self.live)
+
     def _close_rig(self) -> None:
         rig, self._rig = self._rig, None
+        self.live.set_unavailable("the rig is closed (reconnecting or stopping)")
         if rig is None:
             return
         errors = rig.stop_all() if hasattr(rig, "stop_all") else []
@@ -358,6 +377,7 @@ class Daemon:
             self._last_run = {"id": run_id, "kind": job.kind, "verdict": verdict,
                               "reason": reason or None}
             if verdict == "fault":
+                self.faults += 1
                 self._state, self._fault = "fault", reason or "fault"
             else:
                 self._state, self._fault = "idle", None
@@ -601,6 +621,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="simulated rig: seed for its misalignment and noise")
     p.add_argument("--stop-timeout", type=float, default=DEFAULT_STOP_TIMEOUT_S,
                    help="seconds to stop all axes and exit on SIGTERM (default %(default)s)")
+    p.add_argument("--web", metavar="HOST:PORT", help="serve the read-only web dashboard and "
+                   "/metrics here (default: the config's daemon.web; off unless set; "
+                   "':8080' binds 127.0.0.1)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     return p
 
@@ -642,15 +665,25 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
             return open_rig(cfg, seed=seed)
 
     notifier = Notifier(watchdog=cfg.daemon.watchdog)
+    web_at = args.web or cfg.daemon.web
+    web = None
     try:
         daemon = Daemon(cfg, store, rig_factory, procedures=procedures, notifier=notifier,
                         socket_path=socket_path, stop_timeout_s=args.stop_timeout)
         server = ApiServer(socket_path, daemon, Authoriser(cfg.daemon.operator_group))
+        if web_at:
+            from alignd.web.server import WebServer, parse_address
+
+            try:
+                web = WebServer(parse_address(web_at), daemon)
+            except OSError as exc:
+                server.stop()
+                raise OSError(f"web dashboard on {web_at}: {exc.strerror or exc}") from None
     except (AligndError, ImportError, OSError) as exc:
         print(f"alignd: cannot start on {socket_path}: {exc}", file=sys.stderr)
         store.close()
         lock.close()
-        return EXIT_FAULT
+        return EXIT_USAGE if isinstance(exc, ConfigError) else EXIT_FAULT
 
     stop = threading.Event()
     received: list[str] = []
@@ -664,6 +697,8 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     log.info("alignd %s: config %s (%s), state %s, socket %s", __version__, args.config,
              daemon.config_hash[:12], state_dir, socket_path)
     server.start()
+    if web is not None:
+        web.start()
     daemon.start()
     notifier.ready("starting")
     while not stop.wait(0.5):
@@ -672,6 +707,8 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     log.info("%s received: stopping all axes and exiting", why)
     notifier.stopping()
     clean = daemon.stop(f"daemon stopping ({why})")
+    if web is not None:
+        web.stop()
     server.stop()
     store.close()
     lock.close()
