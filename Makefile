@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench-quick venv
+.PHONY: demo test bench-quick venv browser
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -21,10 +21,21 @@ demo: $(STAMP)
 
 # README command 2: lint, the benchmarks in their small CI mode, the test suite (last, so
 # its summary closes the output)
-test: $(STAMP)
+test: $(STAMP) browser
 	$(BIN)/ruff check alignd drivers tests bench
 	$(MAKE) --no-print-directory bench-quick
 	$(BIN)/python -m pytest
 
 bench-quick: $(STAMP)
 	@set -e; for b in bench/*.py; do echo "== $$b --quick"; $(BIN)/python $$b --quick; done
+
+# headless Chromium for the dashboard's browser test (tests/test_web.py): installed with
+# apt-get when missing and we are root; otherwise that test skips and says why
+browser:
+	@if command -v chromium >/dev/null && command -v chromedriver >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		echo "installing chromium and chromium-driver for the browser test"; \
+		apt-get install -y -q chromium chromium-driver >/dev/null \
+		|| { apt-get update -q >/dev/null && apt-get install -y -q chromium chromium-driver >/dev/null; } \
+		|| echo "could not install chromium: the browser test will skip"; \
+	else echo "no chromium and not root: the browser test will skip"; fi

@@ -200,6 +200,7 @@ class Daemon:
         self._status_sent = 0.0
         self.live = LiveFrames()  # the cameras' latest grabs, for the web dashboard
         self.faults = 0  # times the daemon entered the fault state (metrics)
+        self.web_url: str | None = None  # the read-only dashboard, when served
 
     # ---- lifecycle ------------------------------------------------------------------
     def start(self) -> None:
@@ -440,6 +441,7 @@ class Daemon:
                 "config_hash": self.config_hash, "devices": self._devices,
                 "pid": os.getpid(), "uptime_s": round(time.monotonic() - self._started_at, 1),
                 "state_dir": str(self.store.state_dir), "socket": self.socket_path,
+                "web": self.web_url,
             }
 
     def history(self, limit: int) -> list[dict[str, Any]]:
@@ -676,9 +678,12 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
 
             try:
                 web = WebServer(parse_address(web_at), daemon)
-            except OSError as exc:
+            except (OSError, ConfigError) as exc:
                 server.stop()
+                if isinstance(exc, ConfigError):
+                    raise
                 raise OSError(f"web dashboard on {web_at}: {exc.strerror or exc}") from None
+            daemon.web_url = web.url
     except (AligndError, ImportError, OSError) as exc:
         print(f"alignd: cannot start on {socket_path}: {exc}", file=sys.stderr)
         store.close()

@@ -230,7 +230,7 @@ class WebServer(ThreadingHTTPServer):
             f = live.get(cam.role)
             cams[cam.role] = {"seq": f.seq if f else None, "error": f.error if f else None,
                               "has_frame": bool(f and f.image is not None)}
-        st["web"] = {"read_only": True, "note": READ_ONLY, "cameras": cams,
+        st["dashboard"] = {"read_only": True, "note": READ_ONLY, "cameras": cams,
                      "cameras_unavailable": live.unavailable,
                      "tolerance_um": self.source.cfg.procedure.tolerance_um}
         return st

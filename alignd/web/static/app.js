@@ -79,7 +79,7 @@ function showStatus(st) {
   });
   $("#devices tbody").innerHTML = rows.join("") ||
     '<tr><td class="muted">no devices connected</td></tr>';
-  const web = st.web || {};
+  const web = st.dashboard || {};
   for (const role of ["top", "side"]) {
     const cam = (web.cameras || {})[role];
     const box = $(`#cam-${role}`);
@@ -176,17 +176,33 @@ function trendSVG(runs, tol) {
   let t0 = Math.min(...ts), t1 = Math.max(...ts);
   if (t1 - t0 < 60000) { t0 -= 30000; t1 += 30000; }
   const span = t1 - t0; t0 -= span * 0.03; t1 += span * 0.03;
-  const ymax = Math.max(tol || 0, ...pts.map((r) => r.offset_norm_um + (r.U_um || 0))) * 1.12;
+  const top = Math.max(tol || 0, ...pts.map((r) => r.offset_norm_um + (r.U_um || 0)));
+  const positive = pts.map((r) => r.offset_norm_um).filter((v) => v > 0);
+  // offsets from sub-um to mm: a log axis keeps the tolerance line and both ends readable
+  const logScale = positive.length > 0 && top / Math.min(tol || top, ...positive) > 30;
   const x = (t) => L + (t - t0) / (t1 - t0) * (W - L - R);
-  const y = (v) => T + (1 - v / ymax) * (H - T - B);
+  let y, ticksY;
+  if (logScale) {
+    const lo = Math.pow(10, Math.ceil(Math.log10(Math.min(tol || top, ...positive))) - 1);
+    const hi = Math.pow(10, Math.ceil(Math.log10(top * 1.05)));
+    y = (v) => T + (1 - (Math.log10(Math.max(v, lo)) - Math.log10(lo)) /
+      (Math.log10(hi) - Math.log10(lo))) * (H - T - B);
+    ticksY = [];
+    for (let v = lo; v <= hi * 1.0001; v *= 10) ticksY.push(v);
+  } else {
+    const ymax = top * 1.12;
+    y = (v) => T + (1 - v / ymax) * (H - T - B);
+    const step = niceStep(ymax / 5);
+    ticksY = [];
+    for (let v = 0; v <= ymax + 1e-9; v += step) ticksY.push(v);
+  }
   const out = [`<svg class="chart" viewBox="0 0 ${W} ${H}" role="img" aria-label="offset trend">`];
-  const step = niceStep(ymax / 5);
-  for (let v = 0; v <= ymax + 1e-9; v += step) {
+  for (const v of ticksY) {
     out.push(`<line x1="${L}" x2="${W - R}" y1="${y(v)}" y2="${y(v)}" stroke="#e3e6ec"/>`);
     out.push(`<text x="${L - 8}" y="${y(v) + 4}" text-anchor="end">${+v.toFixed(3)}</text>`);
   }
   out.push(`<text x="16" y="${(T + H - B) / 2}" transform="rotate(-90 16 ${(T + H - B) / 2})" ` +
-    `text-anchor="middle">|offset| (${UM})</text>`);
+    `text-anchor="middle">|offset| (${UM}${logScale ? ", log scale" : ""})</text>`);
   const ticks = 6;
   let lastDay = "";
   for (let i = 0; i <= ticks; i++) {
