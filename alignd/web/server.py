@@ -11,8 +11,8 @@ package (``alignd/web/static``), with no build step and nothing fetched from els
 
 Routes: ``/`` (state, progress, live cameras), ``/history`` (runs, trend chart),
 ``/run/ID`` (one run) and their JSON: ``/api/status``, ``/api/history?limit=N``,
-``/api/runs/ID``, ``/api/runs/ID/events?after=SEQ``; ``/live/ROLE.jpg`` (latest frame with overlays), ``/runs/ID/report.png``,
-``/runs/ID.json``, ``/runs/ID.csv``, ``/metrics``.
+``/api/runs/ID``, ``/api/runs/ID/events?after=SEQ``; ``/live/ROLE.jpg`` (latest frame
+with overlays), ``/runs/ID/report.png``, ``/runs/ID.json``, ``/runs/ID.csv``, ``/metrics``.
 """
 
 from __future__ import annotations
