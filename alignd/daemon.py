@@ -42,6 +42,7 @@ from alignd.api import ApiServer, Authoriser, Peer, Refused
 from alignd.client import resolve_socket
 from alignd.config import AligndConfig, config_hash, frame_keeper, load_config
 from alignd.errors import AligndError, ConfigError, StateError
+from alignd.logsetup import configure_logging
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
 from alignd.web.frames import LiveFrames, grab_previews, tap_cameras
 
@@ -634,8 +635,7 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
          procedures: Mapping[str, Procedure] | None = None) -> int:
     """Run the daemon until SIGTERM/SIGINT. ``rig_factory``/``procedures`` are for tests."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=[logging.INFO, logging.DEBUG][min(args.verbose, 1)],
-                        stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    configure_logging([logging.INFO, logging.DEBUG][min(args.verbose, 1)])
     try:
         cfg = load_config(args.config)
     except ConfigError as exc:

@@ -271,3 +271,18 @@ def test_browser_shows_a_faulted_daemon_without_cameras(browser: Any, tmp_path: 
         _wait(d, lambda d: "cannot open the rig" in _text(d, "#cam-top .none"),
               "the camera view saying why there is no frame")
         d.save_screenshot(str(SCREENS / "dashboard-fault.png"))
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="no systemd-analyze")
+def test_metrics_textfile_units_verify(tmp_path: Path) -> None:
+    import subprocess
+
+    names = ["alignd-metrics-textfile.service", "alignd-metrics-textfile.timer"]
+    for n in names:
+        (tmp_path / n).write_text((REPO / "systemd" / n).read_text())
+    out = subprocess.run(["systemd-analyze", "verify", "--man=no",
+                          *(str(tmp_path / n) for n in names)],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stderr.strip() == "", out.stderr
+    svc = (REPO / "systemd" / names[0]).read_text()
+    assert "http://127.0.0.1:8080/metrics" in svc and "mv " in svc  # atomic rename
