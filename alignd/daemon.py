@@ -39,12 +39,14 @@ from typing import Any
 
 from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
+from alignd.axis_readings import AxisReadings, tap_axes
 from alignd.client import resolve_socket
 from alignd.config import AligndConfig, config_hash, frame_keeper, load_config
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.logsetup import configure_logging
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
 from alignd.web.frames import LiveFrames, grab_previews, tap_cameras
+from drivers.axis import Axis
 
 log = logging.getLogger(__name__)
 
@@ -202,6 +204,7 @@ class Daemon:
         self.live = LiveFrames()  # the cameras' latest grabs, for the web dashboard
         self.faults = 0  # times the daemon entered the fault state (metrics)
         self.web_url: str | None = None  # the read-only dashboard, when served
+        self.readings = AxisReadings()  # the axes' last read-backs (status), no extra traffic
 
     # ---- lifecycle ------------------------------------------------------------------
     def start(self) -> None:
@@ -299,6 +302,10 @@ class Daemon:
         cameras = getattr(rig, "cameras", None)
         if isinstance(cameras, dict):
             tap_cameras(cameras, self.live)
+        axes = getattr(rig, "axes", None)
+        self.readings.clear()
+        if isinstance(axes, dict):
+            tap_axes(axes, self.readings)
         self.live.set_unavailable(None)
         self._set_state("idle")
         log.info("rig ready: %s", ", ".join(sorted(self._devices)) or "(no identities)")
@@ -393,8 +400,9 @@ class Daemon:
             return
         parts = []
         for role, ax in axes.items():
+            unit = f" {ax.config.units}" if isinstance(ax, Axis) else ""
             try:
-                parts.append(f"{role}={float(ax.position()):.6g}")
+                parts.append(f"{role}={float(ax.position()):.6g}{unit}")
             except Exception as exc:  # a dead link: say so, do not hide the run's outcome
                 parts.append(f"{role}=unknown ({exc})")
         try:
@@ -442,7 +450,7 @@ class Daemon:
                 "config_hash": self.config_hash, "devices": self._devices,
                 "pid": os.getpid(), "uptime_s": round(time.monotonic() - self._started_at, 1),
                 "state_dir": str(self.store.state_dir), "socket": self.socket_path,
-                "web": self.web_url,
+                "web": self.web_url, "axes": self.readings.snapshot(),
             }
 
     def history(self, limit: int) -> list[dict[str, Any]]:

@@ -97,12 +97,28 @@ class RepeatFilter(logging.Filter):
         return True
 
 
+class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+    """Writes to whatever ``sys.stderr`` is at the time (a test harness may swap it)."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property  # type: ignore[override]
+    def stream(self) -> TextIO:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value: TextIO) -> None:
+        pass
+
+
 def configure_logging(level: int, stream: TextIO | None = None,
                       env: Mapping[str, str] | None = None, window_s: float = 60.0
                       ) -> logging.Handler:
     """Root logging for the daemon: one stderr handler, formatted for where it goes."""
+    handler: logging.StreamHandler = (  # type: ignore[type-arg]
+        _StderrHandler() if stream is None else logging.StreamHandler(stream))
     stream = sys.stderr if stream is None else stream
-    handler = logging.StreamHandler(stream)
     if under_journald(stream, env):
         handler.setFormatter(JournalFormatter())
     else:

@@ -231,10 +231,10 @@ def test_cli_align_and_check_exit_codes(capsys: pytest.CaptureFixture) -> None:
         assert result["verdict"] == "aligned" and result["run_id"] == 1
         assert {"offset_um", "offset_norm_um", "U_um", "iterations", "tilt_deg", "yaw_deg",
                 "reason", "truth"} <= set(result)
-        assert "[sweep] iteration 1 step 1/5" in err and "offset 854.4 ± 5.0 um" in err
+        assert "[sweep] iteration 1 step 1/5" in err and "offset 854.4 ± 5.0 µm" in err
         assert alignctl(["check", "--socket", env.sock]) == 1  # --socket after the command
         out, _ = capsys.readouterr()
-        assert "run 2: out_of_tolerance" in out and "offset     53.4 ± 5.0 um" in out
+        assert "run 2: out_of_tolerance" in out and "offset     53.4 ± 5.0 µm" in out
         assert ctl(env.sock, "status") == 0
         assert "state: idle" in capsys.readouterr().out
         assert ctl(env.sock, "history", "--json") == 0
