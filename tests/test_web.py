@@ -207,7 +207,7 @@ def _wait(d: Any, pred: Callable[[Any], Any], what: str, timeout_s: float = 60.0
 def test_browser_dashboard_watches_a_run(browser: Any) -> None:
     d = browser
     # a slow clock and full sweeps: a run lasts long enough to watch its steps advance
-    with sim_daemon(time_scale=8.0, procedure={"sweep_steps": 21, "max_iterations": 1,
+    with sim_daemon(time_scale=10.0, procedure={"sweep_steps": 15, "max_iterations": 1,
                                                "sweep_deg": 10.0}, args=WEB, env=REAL) as dp:
         url = dp.client.status()["web"]
         d.get(url)
@@ -237,6 +237,8 @@ def test_browser_dashboard_watches_a_run(browser: Any) -> None:
         assert run["verdict"] in _text(d, "#last-run")
         _wait(d, lambda d: f"centre from run {run_id}" in _text(d, "#cam-top figcaption"),
               "the measured centre on the live view")
+        _wait(d, lambda d: " deg" in _text(d, "#devices") and "homed" in _text(d, "#devices"),
+              "the turntable's read-back position and homed state")
         d.save_screenshot(str(SCREENS / "dashboard-after-check.png"))
 
         d.get(url + "history")

@@ -70,12 +70,19 @@ function showStatus(st) {
   $("#last-run").innerHTML = last ? `<a href="/run/${last.id}">run ${last.id}</a> ` +
     `(${esc(last.kind)}): ${verdictSpan(last.verdict)}${last.reason ? " \u2013 " + esc(last.reason) : ""}`
     : "none since the daemon started";
-  const rows = Object.entries(st.devices || {}).sort().map(([role, d]) => {
-    const id = (d && typeof d === "object") ? d : {};
+  const axes = st.axes || {};
+  const roles = [...new Set([...Object.keys(st.devices || {}), ...Object.keys(axes)])].sort();
+  const rows = roles.map((role) => {
+    const id = (st.devices || {})[role] || {};
+    const ax = axes[role] || {};
     const parts = [id.vendor, id.model].filter(Boolean).join(" ");
-    const sn = id.serial ? `s/n ${esc(id.serial)}` : "";
-    const fw = id.firmware ? `fw ${esc(id.firmware)}` : "";
-    return `<tr><th>${esc(role)}</th><td>${esc(parts)}</td><td>${sn}</td><td>${fw}</td></tr>`;
+    const extra = [id.serial ? `s/n ${esc(id.serial)}` : "", id.firmware ? `fw ${esc(id.firmware)}` : ""]
+      .filter(Boolean).join(" ");
+    const pos = ax.position === null || ax.position === undefined ? '<span class="muted">not read yet</span>'
+      : `${Number(ax.position).toFixed(ax.units === "deg" ? 3 : 4)} ${esc(ax.units)}`;
+    const homed = ax.homed === true ? "homed" : ax.homed === false ? '<span class="v-fault">not homed</span>' : "";
+    return `<tr><th>${esc(role)}</th><td class="num">${pos}</td><td>${homed}</td>` +
+      `<td title="${extra}">${esc(parts)}</td></tr>`;
   });
   $("#devices tbody").innerHTML = rows.join("") ||
     '<tr><td class="muted">no devices connected</td></tr>';
