@@ -42,7 +42,7 @@ NOTES_H = 120
 ZOOM_FIELD_TOLERANCES = 5.0  # the zoom spans this many tolerances (fixed per config)
 PATH_COLOURS = [(60, 60, 255), (60, 200, 60), (255, 140, 40), (0, 200, 255), (200, 80, 200)]
 CENTRE_COLOUR = (0, 255, 255)
-CENTRE_INK = (0, 150, 200)  # the centre on white paper
+CENTRE_INK = (0, 120, 170)  # the centre on white paper
 TARGET_COLOUR = (255, 0, 255)
 ALIGN_COLOUR = (0, 0, 200)
 VERIFY_COLOUR = (160, 90, 0)
@@ -118,6 +118,15 @@ def decode_png(data: bytes) -> np.ndarray:
     return img
 
 
+def to_bgr8(image: np.ndarray) -> np.ndarray:
+    """An 8-bit BGR copy of a grey or colour frame (other depths stretched min to max)."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        lo, hi = float(img.min()), float(img.max())
+        img = ((img.astype(np.float64) - lo) * (255.0 / (hi - lo or 1.0))).astype(np.uint8)
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img[:, :, :3].copy()
+
+
 def _rot(deg: float) -> np.ndarray:
     a = math.radians(deg)
     return np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
@@ -167,7 +176,9 @@ class Labels:
                 self.boxes.append(box)
                 if shadow:
                     _text(self.img, text, (ox, oy), size, colour)
-                else:
+                else:  # a white halo keeps it legible over lines and dashes
+                    cv2.putText(self.img, text, (ox, oy), FONT, size, (255, 255, 255), 4,
+                                cv2.LINE_AA)
                     cv2.putText(self.img, text, (ox, oy), FONT, size, colour, 1, cv2.LINE_AA)
                 return True
         return False
@@ -252,9 +263,7 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
         base = np.full((720, 1280, 3), 40, np.uint8)  # the reference camera's size
         _text(base, "no saved frame", (20, 40), 1.0)
     else:
-        base = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
-        if base.dtype != np.uint8:
-            base = cv2.normalize(base, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        base = to_bgr8(image)
     scale = width / base.shape[1]
     view = cv2.resize(base, (width, round(base.shape[0] * scale)),
                       interpolation=cv2.INTER_AREA)
@@ -434,7 +443,11 @@ def draw_zoom(run: dict[str, Any], size: int = PLOT_H) -> np.ndarray:
         labels.put(text, at_, colour)
     for m, p, colour in inside:
         labels.put(m.label, p, colour)
-    labels.put("axis", (round(cx), round(cy)), CENTRE_INK)
+    # legend (bottom right): the axis and the ellipses
+    lx, ly = x0 + plot - 118, y0 + plot - 12
+    cv2.drawMarker(img, (lx, ly - 4), CENTRE_INK, cv2.MARKER_CROSS, 12, 2, cv2.LINE_AA)
+    cv2.putText(img, "axis; ellipses k = 2", (lx + 10, ly), FONT, 0.38, (60, 60, 60), 1,
+                cv2.LINE_AA)
     labels.put(f"tolerance {tol:g} um", (round(cx + tol * k * 0.71), round(cy - tol * k * 0.71)),
                TOL_COLOUR)
     return img

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from alignd.config import AligndConfig
+from alignd.report import to_bgr8
 from alignd.web.frames import LiveFrame, LiveFrames
 
 log = logging.getLogger(__name__)
@@ -110,9 +111,7 @@ class LiveView:
     def _render(self, frame: LiveFrame, centre: Centre | None) -> tuple[bytes, dict[str, Any]]:
         assert frame.image is not None
         img = frame.image
-        view = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
-        if view.dtype != np.uint8:
-            view = cv2.normalize(view, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        view = to_bgr8(img)
         info: dict[str, Any] = {"role": frame.role, "seq": frame.seq,
                                 "age_s": None if frame.wall_time is None
                                 else round(time.time() - frame.wall_time, 1),
