@@ -257,7 +257,8 @@ class Daemon:
             while True:
                 self.notifier.watchdog()
                 try:
-                    job = self._jobs.get(timeout=self.live.wait_s(self.notifier.tick_s))
+                    job = self._jobs.get(timeout=self.live.wait_s(
+                        self.notifier.tick_s, idle=self._state == "idle"))
                 except queue.Empty:
                     if self._stopping.is_set():
                         break

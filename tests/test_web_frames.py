@@ -4,6 +4,7 @@ camera), previews only while someone watches, and a camera that fails is shown, 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from alignd.web.frames import LiveFrames, TappedCamera, grab_previews, tap_cameras
 from drivers.camera import Camera, Frame
@@ -43,9 +44,12 @@ def test_previews_only_while_watched_and_at_most_fps() -> None:
     live = LiveFrames(fps=4.0, linger_s=10.0, clock=clock)
     assert not live.preview_due() and live.wait_s(1.0) == 1.0  # nobody watching
     live.watch()
-    assert live.wait_s(1.0) == 0.25
+    assert live.wait_s(1.0, idle=False) == 1.0  # a busy or faulted worker keeps its tick
+    assert live.wait_s(1.0) == 0.01  # due now
     assert live.preview_due() and not live.preview_due()  # once per period
-    clock.t += 0.25
+    clock.t += 0.1  # the grab took 0.1 s: the next one is due 0.15 s from now
+    assert live.wait_s(1.0) == pytest.approx(0.15)
+    clock.t += 0.15
     assert live.preview_due()
     clock.t += 10.1  # the viewer left
     assert not live.preview_due() and live.wait_s(1.0) == 1.0

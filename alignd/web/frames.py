@@ -76,12 +76,15 @@ class LiveFrames:
             self._preview_at = now
             return True
 
-    def wait_s(self, idle_tick_s: float) -> float:
-        """How long an idle worker may sleep: a preview period while watched."""
+    def wait_s(self, idle_tick_s: float, idle: bool = True) -> float:
+        """How long an idle worker may sleep: until the next preview is due while watched
+        (the grab's own time does not stretch the period), else its usual tick."""
         now = self._clock()
         with self._lock:
             watched = self._watched_at is not None and now - self._watched_at < self.linger_s
-        return min(idle_tick_s, self.period_s) if watched else idle_tick_s
+            if not (watched and idle):
+                return idle_tick_s
+            return min(idle_tick_s, max(0.01, self.period_s - (now - self._preview_at)))
 
     # ---- the web's side ----------------------------------------------------------------
     def watch(self) -> None:
