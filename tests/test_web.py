@@ -288,3 +288,25 @@ def test_metrics_textfile_units_verify(tmp_path: Path) -> None:
     assert out.returncode == 0 and out.stderr.strip() == "", out.stderr
     svc = (REPO / "systemd" / names[0]).read_text()
     assert "http://127.0.0.1:8080/metrics" in svc and "mv " in svc  # atomic rename
+
+
+def test_connections_are_capped_and_idle_ones_dropped(rig: Any) -> None:
+    import socket
+
+    from alignd.web.server import MAX_CONNECTIONS
+
+    host, port = parse_address(rig.url.removeprefix("http://").rstrip("/"))
+    idle = []
+    for _ in range(MAX_CONNECTIONS):  # clients that connect and send nothing
+        s = socket.create_connection((host, port), timeout=10)
+        idle.append(s)
+
+    def refused() -> bool:
+        with socket.create_connection((host, port), timeout=10) as s:
+            s.settimeout(10)
+            return s.recv(100).startswith(b"HTTP/1.1 503")
+
+    assert until(refused, 30, "one connection too many is refused")
+    for s in idle:
+        s.close()
+    assert until(lambda: get(rig.url + "api/status")[0] == 200, 30, "the dashboard again")

@@ -41,6 +41,9 @@ from alignd.web.metrics import Metrics
 
 log = logging.getLogger(__name__)
 
+MAX_CONNECTIONS = 16  # browsers open a few each; more is someone misbehaving
+REQUEST_TIMEOUT_S = 10.0
+
 READ_ONLY = ("this dashboard is read-only: start, abort or reset runs with alignctl on the "
              "control socket (Unix socket, peer credentials)")
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".css": "text/css; charset=utf-8",
@@ -84,6 +87,7 @@ class _Handler(BaseHTTPRequestHandler):
     server: WebServer
     protocol_version = "HTTP/1.1"
     server_version = "alignd-web"
+    timeout = REQUEST_TIMEOUT_S  # a client that stops sending is dropped
 
     def log_message(self, format: str, *args: Any) -> None:
         log.debug("web %s %s", self.address_string(), format % args)
@@ -140,8 +144,10 @@ class WebServer(ThreadingHTTPServer):
     daemon_threads = True
     block_on_close = False
 
-    def __init__(self, address: tuple[str, int], source: WebSource) -> None:
+    def __init__(self, address: tuple[str, int], source: WebSource,
+                 max_connections: int = MAX_CONNECTIONS) -> None:
         self.source = source
+        self._slots = threading.BoundedSemaphore(max_connections)
         self.view = LiveView(source)
         self.metrics = Metrics(source)
         self._report_cache: dict[int, tuple[str, bytes]] = {}
@@ -170,6 +176,26 @@ class WebServer(ThreadingHTTPServer):
             self.shutdown()
             self._thread.join(timeout=2.0)
         self.server_close()
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        if not self._slots.acquire(blocking=False):  # never let the dashboard eat threads
+            log.warning("web: too many connections; refusing one from %s", client_address)
+            with contextlib.suppress(OSError):
+                request.sendall(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 0\r\n"
+                                b"Connection: close\r\n\r\n")
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
 
     # ---- routing ------------------------------------------------------------------------
     def route(self, h: _Handler) -> None:
