@@ -694,7 +694,8 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
                 raise OSError(f"web dashboard on {web_at}: {exc.strerror or exc}") from None
             daemon.web_url = web.url
     except (AligndError, ImportError, OSError) as exc:
-        print(f"alignd: cannot start on {socket_path}: {exc}", file=sys.stderr)
+        where = "" if isinstance(exc, ConfigError) else f"cannot start on {socket_path}: "
+        print(f"alignd: {where}{exc}", file=sys.stderr)
         store.close()
         lock.close()
         return EXIT_USAGE if isinstance(exc, ConfigError) else EXIT_FAULT

@@ -310,3 +310,16 @@ def test_connections_are_capped_and_idle_ones_dropped(rig: Any) -> None:
     for s in idle:
         s.close()
     assert until(lambda: get(rig.url + "api/status")[0] == 200, 30, "the dashboard again")
+
+
+def test_a_bad_web_address_is_a_usage_error(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    from alignd import daemon
+
+    rc = daemon.main(["--config", str(SIM_YAML), "--socket", str(tmp_path / "s.sock"),
+                      "--state-dir", str(tmp_path / "state"), "--web", "localhost:http"],
+                     rig_factory=lambda: None)
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "web address 'localhost:http'" in err and "HOST:PORT" in err
+    assert not (tmp_path / "s.sock").exists()  # nothing left listening
