@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench-quick venv browser
+.PHONY: demo test bench-quick venv browser stress
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -28,6 +28,11 @@ test: $(STAMP) browser
 
 bench-quick: $(STAMP)
 	@set -e; for b in bench/*.py; do echo "== $$b --quick"; $(BIN)/python $$b --quick; done
+
+# the whole suite 5 times with one CPU-bound process per core beside it (never flakes)
+RUNS ?= 5
+stress: $(STAMP)
+	@mkdir -p out; RUNS=$(RUNS) PY=$(BIN)/python tests/stress.sh
 
 # headless Chromium for the dashboard's browser test (tests/test_web.py): installed with
 # apt-get when missing and we are root; otherwise that test skips and says why

@@ -185,11 +185,16 @@ class Axis(ABC):
         self.wait_until_stopped(timeout, command=f"move to {target:.6g}")
 
     def wait_until_stopped(self, timeout_s: float, command: str = "move") -> AxisStatus:
-        """Poll status until not moving; stop and raise on a fault, limit or timeout."""
+        """Poll status until not moving; stop and raise on a fault, limit or timeout.
+
+        Each poll's time is taken before its requests are sent: a "still moving" answer
+        is then true of that time or later, so a slow link or a busy host can never turn
+        a move that finished in time into a timeout or a stall."""
         deadline = self._now() + timeout_s
         last_pos = None
         still_since = self._now()
         while True:
+            now = self._now()
             st = self.status()
             if st.stalled or st.fault:
                 self.stop()
@@ -203,7 +208,6 @@ class Axis(ABC):
                                  device=self.name, port=self.port, command=command)
             if not st.moving:
                 return st
-            now = self._now()
             pos = self.position()
             if last_pos is None or abs(pos - last_pos) > 1e-9:
                 still_since = now
