@@ -4,12 +4,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench-quick venv stress
+.PHONY: demo test bench-quick venv browser stress
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet -e '.[dev,bluesky]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -21,7 +21,7 @@ demo: $(STAMP)
 
 # README command 2: lint, the benchmarks in their small CI mode, the test suite (last, so
 # its summary closes the output)
-test: $(STAMP)
+test: $(STAMP) browser
 	$(BIN)/ruff check alignd drivers tests bench
 	$(MAKE) --no-print-directory bench-quick
 	$(BIN)/python -m pytest
@@ -33,3 +33,14 @@ bench-quick: $(STAMP)
 RUNS ?= 5
 stress: $(STAMP)
 	@mkdir -p out; RUNS=$(RUNS) PY=$(BIN)/python tests/stress.sh
+
+# headless Chromium for the dashboard's browser test (tests/test_web.py): installed with
+# apt-get when missing and we are root; otherwise that test skips and says why
+browser:
+	@if command -v chromium >/dev/null && command -v chromedriver >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		echo "installing chromium and chromium-driver for the browser test"; \
+		apt-get install -y -q chromium chromium-driver >/dev/null \
+		|| { apt-get update -q >/dev/null && apt-get install -y -q chromium chromium-driver >/dev/null; } \
+		|| echo "could not install chromium: the browser test will skip"; \
+	else echo "no chromium and not root: the browser test will skip"; fi

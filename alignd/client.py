@@ -1,4 +1,20 @@
-"""Client for the daemon's control API (HTTP/JSON over its Unix socket).
+"""The supported Python API for alignd (HTTP/JSON over the daemon's Unix socket).
+
+    from alignd.client import Client
+
+    client = Client()                       # $ALIGND_SOCKET, else /run/alignd/alignd.sock
+    result = client.check()                 # waits; a RunResult
+    if not result.ok:
+        result = client.align(on_event=print)
+    print(result.verdict, result.offset_norm_um, result.U_um)
+
+``check``/``align`` start a run and, with ``wait=True`` (the default), follow it to its end
+and return a typed ``RunResult``; ``wait=False`` returns the run id, and ``progress(run_id)``
+iterates over its live ``Event``s. ``status()`` and ``history()`` return the daemon's JSON
+(see docs/python-api.md for the keys). Errors: ``DaemonUnreachable`` (no daemon on the
+socket), ``ApiError`` (the daemon refused: ``code`` is ``busy``, ``starting``, ``fault``,
+``forbidden``, ...). Starting, aborting and resetting need the operator group (peer
+credentials); reading needs only access to the socket.
 
 Socket resolution (contract): ``--socket PATH``, else ``$ALIGND_SOCKET``, else the
 configured default (``daemon.socket``, ``/run/alignd/alignd.sock`` unless a config says
@@ -14,13 +30,15 @@ from __future__ import annotations
 import errno
 import http.client
 import json
+import math
 import os
 import socket
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 from alignd.config import DaemonConfig
 from alignd.errors import AligndError
@@ -46,6 +64,104 @@ class ApiError(AligndError):
         self.status = status
         self.code = code
         self.body = body
+
+
+OK_VERDICTS = ("aligned", "within_tolerance")
+EventType = Literal["progress", "event", "state", "end"]
+
+
+def _opt_float(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
+
+
+def _opt_int(v: Any) -> int | None:
+    return int(v) if isinstance(v, (int, float)) else None
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """The outcome of a run (the run-result contract of DESIGN.md), as the daemon recorded it.
+
+    ``offset_um`` is the target's offset from the rotation axis in the turntable frame
+    (x, y), ``U_um`` its expanded uncertainty (k = 2); ``truth`` only on a simulated rig."""
+
+    run_id: int
+    verdict: str  # aligned | within_tolerance | out_of_tolerance | not_converged | aborted | fault
+    reason: str = ""
+    offset_um: tuple[float, float] | None = None
+    offset_norm_um: float | None = None
+    U_um: float | None = None
+    iterations: int = 0
+    tilt_deg: float | None = None
+    yaw_deg: float | None = None
+    truth: dict[str, Any] | None = None
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def ok(self) -> bool:
+        """Aligned, or within tolerance."""
+        return self.verdict in OK_VERDICTS
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> RunResult:
+        off = d.get("offset_um")
+        offset = None
+        if isinstance(off, (list, tuple)) and len(off) == 2 and all(
+                _opt_float(v) is not None for v in off):
+            offset = (float(off[0]), float(off[1]))
+        truth = d.get("truth")
+        return cls(run_id=int(d.get("run_id") or 0), verdict=str(d.get("verdict") or "fault"),
+                   reason=str(d.get("reason") or ""), offset_um=offset,
+                   offset_norm_um=_opt_float(d.get("offset_norm_um")),
+                   U_um=_opt_float(d.get("U_um")), iterations=int(d.get("iterations") or 0),
+                   tilt_deg=_opt_float(d.get("tilt_deg")), yaw_deg=_opt_float(d.get("yaw_deg")),
+                   truth=truth if isinstance(truth, dict) else None, raw=dict(d))
+
+
+@dataclass(frozen=True)
+class Event:
+    """One live event of a run: ``progress`` (phase, sweep step, latest offset), ``event``
+    (a note or warning, ``level``), ``state`` (started) or ``end`` (``verdict``)."""
+
+    seq: int
+    run_id: int
+    type: str
+    t: float
+    phase: str | None = None
+    message: str = ""
+    step: int | None = None
+    total: int | None = None
+    iteration: int | None = None
+    offset_norm_um: float | None = None
+    U_um: float | None = None
+    level: str | None = None
+    verdict: str | None = None
+    reason: str | None = None
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Event:
+        return cls(seq=int(d.get("seq") or 0), run_id=int(d.get("run_id") or 0),
+                   type=str(d.get("type") or "event"), t=float(d.get("t") or 0.0),
+                   phase=d.get("phase"), message=str(d.get("message") or d.get("msg") or ""),
+                   step=_opt_int(d.get("step")), total=_opt_int(d.get("total")),
+                   iteration=_opt_int(d.get("iteration")),
+                   offset_norm_um=_opt_float(d.get("offset_norm_um")),
+                   U_um=_opt_float(d.get("U_um")), level=d.get("level"),
+                   verdict=d.get("verdict"), reason=d.get("reason"))
+
+    def __str__(self) -> str:
+        if self.type == "end":
+            return f"[end] {self.verdict}" + (f": {self.reason}" if self.reason else "")
+        if self.type != "progress":
+            return f"[{self.level or self.type}] {self.message}"
+        parts = [f"[{self.phase}]"]
+        if self.iteration is not None:
+            parts.append(f"iteration {self.iteration}")
+        if self.step is not None and self.total is not None:
+            parts.append(f"step {self.step}/{self.total}")
+        if self.message:
+            parts.append(self.message)
+        return " ".join(parts)
 
 
 def resolve_socket(arg: str | None = None, configured: str | None = None) -> str:
@@ -78,11 +194,12 @@ class _UnixConnection(http.client.HTTPConnection):
 
 
 class Client:
-    """One request per connection; every method returns the decoded JSON reply."""
+    """alignd's control API. One request per connection (no state between calls), so a
+    ``Client`` may be shared between threads. ``socket_path`` defaults as ``alignctl``'s."""
 
-    def __init__(self, socket_path: str | Path, timeout_s: float = 10.0, retry_s: float = 2.0,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
-        self.socket_path = str(socket_path)
+    def __init__(self, socket_path: str | Path | None = None, timeout_s: float = 10.0,
+                 retry_s: float = 2.0, sleep: Callable[[float], None] = time.sleep) -> None:
+        self.socket_path = resolve_socket(str(socket_path) if socket_path else None)
         self.timeout_s = timeout_s
         self.retry_s = retry_s
         self._sleep = sleep
@@ -181,3 +298,77 @@ class Client:
 
     def reset(self) -> dict[str, Any]:
         return self.request("POST", "/reset", {})
+
+    # ---- runs, typed ------------------------------------------------------------------
+    @overload
+    def check(self, wait: Literal[True] = ..., *, started_by: str = ...,
+              on_event: Callable[[Event], None] | None = ..., wait_ready_s: float = ...
+              ) -> RunResult: ...
+    @overload
+    def check(self, wait: Literal[False], *, started_by: str = ...,
+              on_event: Callable[[Event], None] | None = ..., wait_ready_s: float = ...
+              ) -> int: ...
+    def check(self, wait: bool = True, *, started_by: str = "user",
+              on_event: Callable[[Event], None] | None = None, wait_ready_s: float = 60.0
+              ) -> RunResult | int:
+        """Measure the offset without moving the sample; pass/fail against the tolerance.
+        ``wait=True``: follow the run (``on_event`` sees its live events) and return its
+        result; ``wait=False``: return the run id at once."""
+        return self._run("check", wait, started_by, on_event, wait_ready_s)
+
+    @overload
+    def align(self, wait: Literal[True] = ..., *, started_by: str = ...,
+              on_event: Callable[[Event], None] | None = ..., wait_ready_s: float = ...
+              ) -> RunResult: ...
+    @overload
+    def align(self, wait: Literal[False], *, started_by: str = ...,
+              on_event: Callable[[Event], None] | None = ..., wait_ready_s: float = ...
+              ) -> int: ...
+    def align(self, wait: bool = True, *, started_by: str = "user",
+              on_event: Callable[[Event], None] | None = None, wait_ready_s: float = 60.0
+              ) -> RunResult | int:
+        """Closed-loop alignment of the sample onto the rotation axis (as ``check``)."""
+        return self._run("align", wait, started_by, on_event, wait_ready_s)
+
+    def _run(self, kind: str, wait: bool, started_by: str,
+             on_event: Callable[[Event], None] | None, wait_ready_s: float) -> RunResult | int:
+        deadline = time.monotonic() + wait_ready_s
+        while True:
+            try:
+                run_id = int(self.start(kind, started_by)["run_id"])
+                break
+            except ApiError as exc:  # still connecting the hardware: wait a little
+                if exc.code != "starting" or time.monotonic() >= deadline:
+                    raise
+                time.sleep(0.5)
+        return self.wait(run_id, on_event) if wait else run_id
+
+    def progress(self, run_id: int, poll_s: float = 10.0) -> Iterator[Event]:
+        """The run's live events from its start, until its ``end`` event (long-polling)."""
+        after = 0
+        while True:
+            reply = self.events(run_id, after=after, wait_s=poll_s)
+            for ev in reply.get("events", []):
+                yield Event.from_json(ev)
+            after = int(reply.get("next", after))
+            if reply.get("done"):
+                return
+
+    def wait(self, run_id: int, on_event: Callable[[Event], None] | None = None
+             ) -> RunResult:
+        """Follow a run to its end; its result (``DaemonUnreachable`` if the daemon dies)."""
+        for ev in self.progress(run_id):
+            if on_event is not None:
+                on_event(ev)
+        return self.result(run_id)
+
+    def result(self, run_id: int) -> RunResult:
+        """The recorded result of a finished run (``ApiError`` ``no_such_run``, or
+        ``StateError`` while it is still running)."""
+        run = self.run(run_id)
+        res = run.get("result")
+        if not isinstance(res, dict):
+            from alignd.errors import StateError
+
+            raise StateError(f"run {run_id} has no result yet (status {run.get('status')})")
+        return RunResult.from_json({"run_id": run_id, **res})

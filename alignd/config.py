@@ -81,6 +81,9 @@ class DaemonConfig(Strict):
         "which camera frames are kept as PNG files: all (the raw data, tens of MB a run), "
         "report (the frame nearest 0 deg of every sweep, which the report draws on) or "
         "none; every frame's hash and features are recorded in the database either way"))
+    web: str | None = Field(None, description=(
+        "HOST:PORT of the read-only web dashboard and /metrics (off unless set; a bare "
+        "':8080' binds 127.0.0.1); alignd --web overrides it"))
 
 
 class AligndConfig(Strict):

@@ -42,10 +42,14 @@ from typing import Any
 
 from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
+from alignd.axis_readings import AxisReadings, tap_axes
 from alignd.client import resolve_socket
 from alignd.config import AligndConfig, config_hash, frame_keeper, load_config, run_footprint
 from alignd.errors import AligndError, ConfigError, StateError
+from alignd.logsetup import configure_logging
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
+from alignd.web.frames import LiveFrames, grab_previews, tap_cameras
+from drivers.axis import Axis
 from drivers.errors import CameraError
 
 log = logging.getLogger(__name__)
@@ -225,6 +229,10 @@ class Daemon:
                                         daemon=True)
         self._started_at = time.monotonic()
         self._status_sent = 0.0
+        self.live = LiveFrames()  # the cameras' latest grabs, for the web dashboard
+        self.faults = 0  # times the daemon entered the fault state (metrics)
+        self.web_url: str | None = None  # the read-only dashboard, when served
+        self.readings = AxisReadings()  # the axes' last read-backs (status), no extra traffic
 
     # ---- lifecycle ------------------------------------------------------------------
     def start(self) -> None:
@@ -264,6 +272,8 @@ class Daemon:
     # ---- the worker -----------------------------------------------------------------
     def _set_state(self, state: str, fault: str | None = None) -> None:
         with self._cond:
+            if state == "fault" and self._state != "fault":
+                self.faults += 1
             self._state = state
             self._fault = fault
             self._cond.notify_all()
@@ -275,10 +285,12 @@ class Daemon:
             while True:
                 self.notifier.watchdog()
                 try:
-                    job = self._jobs.get(timeout=self.notifier.tick_s)
+                    job = self._jobs.get(timeout=self.live.wait_s(
+                        self.notifier.tick_s, idle=self._state == "idle"))
                 except queue.Empty:
                     if self._stopping.is_set():
                         break
+                    self._preview()
                     continue
                 if job is None:
                     break
@@ -322,13 +334,29 @@ class Daemon:
                 log.exception("opening the rig failed")
             reason = f"cannot open the rig: {exc}"
             log.error("%s", reason)
+            self.live.set_unavailable(reason)
             self._set_state("fault", reason)
             return
         self._rig = rig
         self._devices = _identities(rig)
         self._warnings = list(getattr(rig, "warnings", None) or [])
+        cameras = getattr(rig, "cameras", None)
+        if isinstance(cameras, dict):
+            tap_cameras(cameras, self.live)
+        axes = getattr(rig, "axes", None)
+        self.readings.clear()
+        if isinstance(axes, dict):
+            tap_axes(axes, self.readings)
+        self.live.set_unavailable(None)
         self._set_state("idle")
         log.info("rig ready: %s", ", ".join(sorted(self._devices)) or "(no identities)")
+
+    def _preview(self) -> None:
+        """While idle and watched, grab preview frames for the dashboard (the worker owns
+        the cameras; the web server never opens one)."""
+        cameras = getattr(self._rig, "cameras", None)
+        if self._state == "idle" and isinstance(cameras, dict) and self.live.preview_due():
+            grab_previews(cameras, self.live)
 
     def _apply_config(self, cfg: AligndConfig) -> None:
         """Use a newly loaded config from now on (worker thread, no run in progress)."""
@@ -375,6 +403,7 @@ class Daemon:
 
     def _close_rig(self) -> None:
         rig, self._rig = self._rig, None
+        self.live.set_unavailable("the rig is closed (reconnecting or stopping)")
         if rig is None:
             return
         errors = rig.stop_all() if hasattr(rig, "stop_all") else []
@@ -441,6 +470,7 @@ class Daemon:
             self._last_run = {"id": run_id, "kind": job.kind, "verdict": verdict,
                               "reason": reason or None}
             if verdict == "fault":
+                self.faults += 1
                 self._state, self._fault = "fault", reason or "fault"
             else:
                 self._state, self._fault = "idle", None
@@ -454,8 +484,9 @@ class Daemon:
             return
         parts = []
         for role, ax in axes.items():
+            unit = f" {ax.config.units}" if isinstance(ax, Axis) else ""
             try:
-                parts.append(f"{role}={float(ax.position()):.6g}")
+                parts.append(f"{role}={float(ax.position()):.6g}{unit}")
             except Exception as exc:  # a dead link: say so, do not hide the run's outcome
                 parts.append(f"{role}=unknown ({exc})")
         try:
@@ -507,6 +538,7 @@ class Daemon:
                 "pid": os.getpid(), "uptime_s": round(time.monotonic() - self._started_at, 1),
                 "state_dir": str(self.store.state_dir), "socket": self.socket_path,
                 "runs_refused": refused,
+                "web": self.web_url, "axes": self.readings.snapshot(),
             }
 
     def history(self, limit: int) -> list[dict[str, Any]]:
@@ -726,6 +758,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="simulated rig: seed for its misalignment and noise")
     p.add_argument("--stop-timeout", type=float, default=DEFAULT_STOP_TIMEOUT_S,
                    help="seconds to stop all axes and exit on SIGTERM (default %(default)s)")
+    p.add_argument("--web", metavar="HOST:PORT", help="serve the read-only web dashboard and "
+                   "/metrics here (default: the config's daemon.web; off unless set; "
+                   "':8080' binds 127.0.0.1)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     return p
 
@@ -734,8 +769,7 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
          procedures: Mapping[str, Procedure] | None = None) -> int:
     """Run the daemon until SIGTERM/SIGINT. ``rig_factory``/``procedures`` are for tests."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=[logging.INFO, logging.DEBUG][min(args.verbose, 1)],
-                        stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    configure_logging([logging.INFO, logging.DEBUG][min(args.verbose, 1)])
     try:
         cfg = load_config(args.config)
     except ConfigError as exc:
@@ -771,22 +805,35 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
             return open_rig(cfg, seed=seed)
 
     notifier = Notifier(watchdog=cfg.daemon.watchdog)
+    web_at = args.web or cfg.daemon.web
+    web = None
     try:
         daemon = Daemon(cfg, store, rig_factory, procedures=procedures, notifier=notifier,
                         socket_path=socket_path, stop_timeout_s=args.stop_timeout,
                         config_path=args.config)
         server = ApiServer(socket_path, daemon, Authoriser(cfg.daemon.operator_group))
-
         def use_operator_group(new: AligndConfig) -> None:
             server.authoriser = Authoriser(new.daemon.operator_group)
 
         daemon.on_config.append(use_operator_group)
         daemon.on_config.append(lambda new: use_space_floor(store, new))
+        if web_at:
+            from alignd.web.server import WebServer, parse_address
+
+            try:
+                web = WebServer(parse_address(web_at), daemon)
+            except (OSError, ConfigError) as exc:
+                server.stop()
+                if isinstance(exc, ConfigError):
+                    raise
+                raise OSError(f"web dashboard on {web_at}: {exc.strerror or exc}") from None
+            daemon.web_url = web.url
     except (AligndError, ImportError, OSError) as exc:
-        print(f"alignd: cannot start on {socket_path}: {exc}", file=sys.stderr)
+        where = "" if isinstance(exc, ConfigError) else f"cannot start on {socket_path}: "
+        print(f"alignd: {where}{exc}", file=sys.stderr)
         store.close()
         lock.close()
-        return EXIT_FAULT
+        return EXIT_USAGE if isinstance(exc, ConfigError) else EXIT_FAULT
 
     stop = threading.Event()
     received: list[str] = []
@@ -801,6 +848,8 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
              daemon.config_hash[:12], state_dir, socket_path)
     daemon.start()  # the worker first: a request queued on the socket may be served at once
     server.start()
+    if web is not None:
+        web.start()
     notifier.ready("starting")
     while not stop.wait(0.5):
         pass
@@ -808,6 +857,8 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     log.info("%s received: stopping all axes and exiting", why)
     notifier.stopping()
     clean = daemon.stop(f"daemon stopping ({why})")
+    if web is not None:
+        web.stop()
     server.stop()
     store.close()
     lock.close()

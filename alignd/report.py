@@ -1,6 +1,17 @@
-"""A run's report: one PNG (top-camera view with the tracked paths, the centre of rotation
-with its uncertainty ellipse and the target point; the offset per iteration) and the run's
-JSON record.
+"""A run's report: one PNG and the run's JSON record.
+
+The PNG, top to bottom: a header (verdict, offset +/- U, who, when, software); the top
+camera's view at a fixed scale (the frame is always shown whole, so a millimetre is the
+same length in every report of a camera) with the tracked corner paths (legend), the
+centre of rotation, the target point, a scale bar in mm and the directions in which the
+correction stages move the image; then, side by side, a zoom around the axis at a fixed
+scale set by the tolerance (the offset of every align and verify measurement in um, with
+the tolerance circle and k = 2 ellipses; measurements outside the field are arrows on its
+edge) and the offset per iteration (log scale, align and verify with distinct markers,
+bars U at k = 2, never clipped silently); last, a text block: the verdict's reason and,
+when the run record carries them, the decision rule (``result["decision_rule"]``, text)
+and the uncertainty budget (``result["budget"]``: rows with ``name`` and ``u_um`` or
+``value``), which the verdict code adds.
 
 Drawn with OpenCV only (no plotting library on an instrument PC). Both files are written
 atomically (temp file, fsync, rename), so a report file is always wholly the old one or
@@ -15,6 +26,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,11 +36,18 @@ import numpy as np
 from alignd.store import atomic_write_bytes, jsonable
 
 WIDTH = 960
-PLOT_H = 320
+PLOT_H = 360  # the row holding the zoom (square) and the convergence plot
 HEADER_H = 70
+NOTES_H = 120
+ZOOM_FIELD_TOLERANCES = 5.0  # the zoom spans this many tolerances (fixed per config)
 PATH_COLOURS = [(60, 60, 255), (60, 200, 60), (255, 140, 40), (0, 200, 255), (200, 80, 200)]
 CENTRE_COLOUR = (0, 255, 255)
+CENTRE_INK = (0, 120, 170)  # the centre on white paper
 TARGET_COLOUR = (255, 0, 255)
+ALIGN_COLOUR = (0, 0, 200)
+VERIFY_COLOUR = (160, 90, 0)
+TOL_COLOUR = (0, 150, 0)
+AXIS_COLOUR = (255, 255, 0)
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
@@ -99,6 +118,15 @@ def decode_png(data: bytes) -> np.ndarray:
     return img
 
 
+def to_bgr8(image: np.ndarray) -> np.ndarray:
+    """An 8-bit BGR copy of a grey or colour frame (other depths stretched min to max)."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        lo, hi = float(img.min()), float(img.max())
+        img = ((img.astype(np.float64) - lo) * (255.0 / (hi - lo or 1.0))).astype(np.uint8)
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img[:, :, :3].copy()
+
+
 def _rot(deg: float) -> np.ndarray:
     a = math.radians(deg)
     return np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
@@ -116,21 +144,130 @@ def _text(img: np.ndarray, text: str, org: tuple[int, int], size: float = 0.5,
     cv2.putText(img, text, org, FONT, size, colour, thick, cv2.LINE_AA)
 
 
+class Labels:
+    """Places text where it overlaps nothing placed before (tries a few spots, then the
+    first free row below), so labels never cover each other."""
+
+    def __init__(self, img: np.ndarray) -> None:
+        self.img = img
+        self.boxes: list[tuple[int, int, int, int]] = []
+
+    def _free(self, box: tuple[int, int, int, int]) -> bool:
+        x0, y0, x1, y1 = box
+        h, w = self.img.shape[:2]
+        if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
+            return False
+        return all(x1 <= a or x0 >= c or y1 <= b or y0 >= d for a, b, c, d in self.boxes)
+
+    def reserve(self, box: tuple[int, int, int, int]) -> None:
+        self.boxes.append(box)
+
+    def put(self, text: str, near: tuple[int, int], colour: tuple[int, int, int],
+            size: float = 0.42, shadow: bool = False) -> bool:
+        (tw, th), base = cv2.getTextSize(text, FONT, size, 1)
+        x, y = near
+        tries = [(x + 8, y - 6), (x + 8, y + th + 8), (x - tw - 8, y - 6),
+                 (x - tw - 8, y + th + 8), (x - tw // 2, y - 12), (x - tw // 2, y + th + 14)]
+        tries += [(x + 8, y - 6 + k * (th + 6)) for k in range(2, 12)]
+        tries += [(x + 8, y - 6 - k * (th + 6)) for k in range(2, 12)]
+        for ox, oy in tries:
+            box = (ox - 2, oy - th - 2, ox + tw + 2, oy + base + 2)
+            if self._free(box):
+                self.boxes.append(box)
+                if shadow:
+                    _text(self.img, text, (ox, oy), size, colour)
+                else:  # a white halo keeps it legible over lines and dashes
+                    cv2.putText(self.img, text, (ox, oy), FONT, size, (255, 255, 255), 4,
+                                cv2.LINE_AA)
+                    cv2.putText(self.img, text, (ox, oy), FONT, size, colour, 1, cv2.LINE_AA)
+                return True
+        return False
+
+
+@dataclass(frozen=True)
+class Measured:
+    """One measurement of a run (an iteration record): what the zoom and the plot draw."""
+
+    index: int  # position in the run
+    n: int  # iteration number
+    kind: str  # align | verify | check | ...
+    offset_um: tuple[float, float] | None
+    norm_um: float
+    U_um: float | None
+    cov_um2: np.ndarray | None
+
+    @property
+    def label(self) -> str:
+        return f"v{self.n}" if self.kind == "verify" else str(self.n)
+
+
+def _measurements(run: dict[str, Any]) -> list[Measured]:
+    out = []
+    for i, rec in enumerate(_records(run)):
+        off = _find(rec, ("offset_um",))
+        norm = _find(rec, ("offset_norm_um",))
+        if off is None and norm is None:
+            continue
+        xy = None
+        if off is not None and len(off) >= 2:
+            xy = (float(off[0]), float(off[1]))
+        if norm is None and xy is not None:
+            norm = math.hypot(*xy)
+        u = _find(rec, ("U_um",))
+        cov = rec.get("cov_offset_um2")
+        out.append(Measured(i, int(rec.get("iteration") or rec.get("n") or i + 1),
+                            str(rec.get("kind") or run.get("kind") or "?"), xy, float(norm),
+                            None if u is None else float(u),
+                            None if cov is None else np.asarray(cov, float)))
+    return out
+
+
+def _tolerance(run: dict[str, Any]) -> float | None:
+    tol = _find(run.get("config") or {}, ("tolerance_um",))
+    if tol is None:
+        tol = _find(run.get("details") or {}, ("tolerance_um",))
+    return None if tol is None else float(tol)
+
+
+def _um_per_px(run: dict[str, Any]) -> float | None:
+    """Micrometres per image pixel at the holder's face (for the scale bar)."""
+    scale = _find(_records(run), ("scale_px_per_mm",))
+    if scale:
+        return 1000.0 / float(scale)
+    px = _find(run.get("details") or {}, ("pixel_size_um",))
+    if px is None:
+        px = _find((run.get("config") or {}).get("cameras") or [], ("pixel_size_um",))
+    return None if px is None else float(px)
+
+
+def _nice(x: float) -> float:
+    """The largest 1, 2 or 5 times a power of ten not above ``x``."""
+    p = 10 ** math.floor(math.log10(x))
+    return max(m * p for m in (1, 2, 5) if m * p <= x)
+
+
+def _arrow(img: np.ndarray, a: tuple[int, int], b: tuple[int, int],
+           colour: tuple[int, int, int], thick: int = 2) -> None:
+    cv2.arrowedLine(img, (a[0] + 1, a[1] + 1), (b[0] + 1, b[1] + 1), (0, 0, 0), thick,
+                    cv2.LINE_AA, tipLength=0.25)
+    cv2.arrowedLine(img, a, b, colour, thick, cv2.LINE_AA, tipLength=0.25)
+
+
 def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WIDTH
                   ) -> np.ndarray:
-    """The top-camera view: frame, tracked paths, centre with its k = 2 ellipse, target."""
+    """The top-camera view, whole frame at a fixed scale: paths, centre, target, scale bar,
+    stage directions."""
     pick = pick_frame(run)
     sweep = (pick or {}).get("sweep") or ((run.get("sweeps") or [None])[-1])
     if image is None:
         base = np.full((720, 1280, 3), 40, np.uint8)  # the reference camera's size
         _text(base, "no saved frame", (20, 40), 1.0)
     else:
-        base = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
-        if base.dtype != np.uint8:
-            base = cv2.normalize(base, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        base = to_bgr8(image)
     scale = width / base.shape[1]
     view = cv2.resize(base, (width, round(base.shape[0] * scale)),
                       interpolation=cv2.INTER_AREA)
+    H = view.shape[0]
 
     # tracked paths (each feature keeps its index across frames; null = missed)
     frames = ((sweep or {}).get("sweep") or {}).get("frames") or []
@@ -146,25 +283,11 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
             cv2.circle(view, _pt(np.asarray(p, float), scale), 2, colour, -1, cv2.LINE_AA)
 
     rec = _centre_record(run)
-    legend = []
     if rec is not None:
         c = np.asarray(_find(rec, ("centre_px", "center_px")), float)
-        cov = _find(rec, ("cov_centre_px2", "cov_center_px2", "cov_px2"))
         cc = _pt(c, scale)
+        cv2.drawMarker(view, cc, (0, 0, 0), cv2.MARKER_CROSS, 26, 4, cv2.LINE_AA)
         cv2.drawMarker(view, cc, CENTRE_COLOUR, cv2.MARKER_CROSS, 24, 2, cv2.LINE_AA)
-        if cov is not None:
-            cov = np.asarray(cov, float)
-            vals, vecs = np.linalg.eigh((cov + cov.T) / 2)
-            semi = 2.0 * np.sqrt(np.clip(vals, 0, None)) * scale  # k = 2, display pixels
-            mag = 1.0
-            if semi.max() > 0 and semi.max() < 12:
-                mag = 10 ** math.ceil(math.log10(12 / semi.max()))  # make it visible
-            ang = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
-            axes = (max(1, round(semi[1] * mag)), max(1, round(semi[0] * mag)))
-            cv2.ellipse(view, cc, axes, ang, 0, 360, CENTRE_COLOUR, 1, cv2.LINE_AA)
-            legend.append("centre of rotation, k=2 ellipse" + (f" x{mag:g}" if mag > 1 else ""))
-        else:
-            legend.append("centre of rotation")
         target = _find(rec, ("target_px",))
         off = _find(rec, ("offset_px",))
         angle = (pick or {}).get("angle_deg") or 0.0
@@ -173,11 +296,50 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
         if target is not None:
             tt = _pt(np.asarray(target, float), scale)
             cv2.line(view, cc, tt, TARGET_COLOUR, 1, cv2.LINE_AA)
-            cv2.circle(view, tt, 6, TARGET_COLOUR, 2, cv2.LINE_AA)
-            legend.append("target point (middle of the sample surface)")
-    for i, line in enumerate(legend):
-        colour = CENTRE_COLOUR if i == 0 else TARGET_COLOUR
-        _text(view, line, (10, view.shape[0] - 12 - 20 * (len(legend) - 1 - i)), 0.5, colour)
+            cv2.circle(view, tt, 7, TARGET_COLOUR, 2, cv2.LINE_AA)
+
+    # legend (bottom left): corner paths, centre, target
+    items: list[tuple[str, tuple[int, int, int], str]] = [
+        (f"corner {k} path", PATH_COLOURS[k % len(PATH_COLOURS)], "dot") for k in range(n_feat)]
+    if rec is not None:
+        items.append(("centre of rotation", CENTRE_COLOUR, "cross"))
+        items.append(("target (sample surface middle)", TARGET_COLOUR, "ring"))
+    y = H - 12 - 18 * (len(items) - 1)
+    for text, colour, mark in items:
+        if mark == "dot":
+            cv2.line(view, (12, y - 5), (28, y - 5), colour, 2, cv2.LINE_AA)
+        elif mark == "cross":
+            cv2.drawMarker(view, (20, y - 5), colour, cv2.MARKER_CROSS, 12, 2, cv2.LINE_AA)
+        else:
+            cv2.circle(view, (20, y - 5), 5, colour, 2, cv2.LINE_AA)
+        _text(view, text, (36, y), 0.45, colour)
+        y += 18
+
+    # scale bar (bottom right) and the correction stages' directions in the image
+    um_px = _um_per_px(run)
+    if um_px:
+        px_per_mm = 1000.0 / um_px * scale
+        bar_mm = _nice(120 / px_per_mm)
+        L = round(bar_mm * px_per_mm)
+        x1, yb = width - 16, H - 16
+        cv2.rectangle(view, (x1 - L - 1, yb - 6), (x1 + 1, yb + 1), (255, 255, 255), -1)
+        cv2.rectangle(view, (x1 - L, yb - 5), (x1, yb), (0, 0, 0), -1)
+        label = f"{bar_mm:g} mm (at the holder face)"
+        tw = cv2.getTextSize(label, FONT, 0.45, 1)[0][0]
+        _text(view, label, (x1 - tw, yb - 10), 0.45)
+    J = _find(run.get("details") or {}, ("J_px_per_mm",))
+    if J is not None:
+        J = np.asarray(J, float)
+        roles = _find(run.get("details") or {}, ("roles",)) or ["x", "y"]
+        o = (width - 100, H - 120)
+        for k in range(min(2, J.shape[1])):
+            d = J[:, k] / (np.hypot(*J[:, k]) or 1.0)
+            tip = (round(o[0] + 45 * d[0]), round(o[1] + 45 * d[1]))
+            _arrow(view, o, tip, AXIS_COLOUR)
+            _text(view, f"+{roles[k]}", (tip[0] + (6 if d[0] >= 0 else -26),
+                                          tip[1] + (14 if d[1] > 0.3 else -4)), 0.5,
+                  AXIS_COLOUR)
+        _text(view, "stage moves", (o[0] - 92, o[1] + 4), 0.4, AXIS_COLOUR)
     if pick is not None and sweep is not None:
         what = f"{sweep.get('kind')} sweep {sweep.get('iteration')}"
         if pick.get("angle_deg") is not None:
@@ -186,50 +348,151 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
     return view
 
 
-def _iteration_points(run: dict[str, Any]) -> list[tuple[float, float, float | None]]:
-    """(iteration, |offset| um, U um) per iteration record, in order."""
-    out = []
-    for i, rec in enumerate(_records(run)):
-        norm = _find(rec, ("offset_norm_um",))
-        if norm is None:
-            off = _find(rec, ("offset_um",))
-            if off is None:
-                continue
-            norm = float(np.hypot(*np.asarray(off, float)[:2]))
-        u = _find(rec, ("U_um",))
-        n = rec.get("n", i + 1)
-        out.append((float(n), float(norm), None if u is None else float(u)))
-    return out
+def _ellipse(img: np.ndarray, centre: tuple[float, float], cov: np.ndarray, k: float,
+             px_per_unit: float, colour: tuple[int, int, int]) -> None:
+    vals, vecs = np.linalg.eigh((cov + cov.T) / 2)
+    semi = k * np.sqrt(np.clip(vals, 0, None)) * px_per_unit
+    ang = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
+    axes = (max(1, round(semi[1])), max(1, round(semi[0])))
+    cv2.ellipse(img, (round(centre[0]), round(centre[1])), axes, ang, 0, 360, colour, 1,
+                cv2.LINE_AA)
 
 
-def draw_convergence(run: dict[str, Any], width: int = WIDTH, height: int = PLOT_H
+def draw_zoom(run: dict[str, Any], size: int = PLOT_H) -> np.ndarray:
+    """The axis and the target up close, at a fixed scale (a field of
+    ``ZOOM_FIELD_TOLERANCES`` tolerances), in um, image axes at turntable angle 0."""
+    img = np.full((size, size, 3), 255, np.uint8)
+    labels = Labels(img)
+    cv2.putText(img, "around the axis (um, turntable at 0 deg)", (8, 18), FONT, 0.45,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    labels.reserve((0, 0, size, 24))
+    tol = _tolerance(run) or 10.0
+    field = ZOOM_FIELD_TOLERANCES * tol
+    top, pad = 28, 10
+    plot = size - top - pad
+    x0, y0 = (size - plot) // 2, top
+    k = plot / field  # px per um
+    cx, cy = x0 + plot / 2, y0 + plot / 2
+
+    def at(u: tuple[float, float]) -> tuple[int, int]:
+        return round(cx + u[0] * k), round(cy + u[1] * k)
+
+    cv2.rectangle(img, (x0, y0), (x0 + plot, y0 + plot), (150, 150, 150), 1)
+    grid = _nice(field / 4)
+    g = grid
+    while g < field / 2:
+        for s in (-1, 1):
+            xx, yy = round(cx + s * g * k), round(cy + s * g * k)
+            cv2.line(img, (xx, y0 + 1), (xx, y0 + plot - 1), (232, 232, 232), 1)
+            cv2.line(img, (x0 + 1, yy), (x0 + plot - 1, yy), (232, 232, 232), 1)
+        g += grid
+    # tolerance circle about the axis
+    for a in range(0, 360, 12):
+        cv2.ellipse(img, (round(cx), round(cy)), (round(tol * k), round(tol * k)), 0, a, a + 6,
+                    TOL_COLOUR, 1, cv2.LINE_AA)
+    # the axis (origin) with its k = 2 ellipse
+    rec = _centre_record(run)
+    cov_c = None if rec is None else _find(rec, ("cov_centre_px2", "cov_center_px2"))
+    um_px = _um_per_px(run)
+    cv2.drawMarker(img, (round(cx), round(cy)), CENTRE_INK, cv2.MARKER_CROSS, 16, 2,
+                   cv2.LINE_AA)
+    if cov_c is not None and um_px:
+        _ellipse(img, (cx, cy), np.asarray(cov_c, float) * um_px**2, 2.0, k, CENTRE_INK)
+    labels.reserve((round(cx) - 9, round(cy) - 9, round(cx) + 9, round(cy) + 9))
+    # each measurement's offset; the last one with its k = 2 ellipse
+    ms = [m for m in _measurements(run) if m.offset_um is not None]
+    prev = None
+    inside = []
+    outside: list[tuple[str, tuple[int, int], tuple[int, int, int]]] = []
+    for m in ms:
+        assert m.offset_um is not None
+        p = at(m.offset_um)
+        colour = VERIFY_COLOUR if m.kind == "verify" else ALIGN_COLOUR
+        if x0 <= p[0] <= x0 + plot and y0 <= p[1] <= y0 + plot:
+            inside.append((m, p, colour))
+            if prev is not None:
+                cv2.line(img, prev, p, (180, 180, 180), 1, cv2.LINE_AA)
+            prev = p
+        else:  # outside the field: an arrow on the edge pointing to it
+            d = np.asarray(m.offset_um) / (np.hypot(*m.offset_um) or 1.0)
+            reach = (plot / 2 - 4) / max(abs(d[0]), abs(d[1]))
+            tip = (round(cx + d[0] * reach), round(cy + d[1] * reach))
+            tail = (round(tip[0] - d[0] * 26), round(tip[1] - d[1] * 26))
+            cv2.arrowedLine(img, tail, tip, colour, 2, cv2.LINE_AA, tipLength=0.35)
+            labels.reserve((min(tip[0], tail[0]) - 3, min(tip[1], tail[1]) - 3,
+                            max(tip[0], tail[0]) + 3, max(tip[1], tail[1]) + 3))
+            outside.append((f"{m.label}: {m.norm_um:.0f} um", tail, colour))
+            prev = None
+    if inside and inside[-1][0].cov_um2 is not None:
+        m, p, colour = inside[-1]
+        _ellipse(img, p, m.cov_um2, 2.0, k, colour)  # type: ignore[arg-type]
+    for m, p, colour in inside:
+        if m.kind == "verify":
+            cv2.drawMarker(img, p, colour, cv2.MARKER_DIAMOND, 12, 2, cv2.LINE_AA)
+        else:
+            cv2.circle(img, p, 5, colour, -1, cv2.LINE_AA)
+        labels.reserve((p[0] - 6, p[1] - 6, p[0] + 6, p[1] + 6))
+    # scale bar
+    bar = grid
+    bx, by = x0 + 8, y0 + plot - 10
+    cv2.line(img, (bx, by), (bx + round(bar * k), by), (0, 0, 0), 2)
+    labels.reserve((bx - 2, by - 18, bx + round(bar * k) + 2, by + 3))
+    cv2.putText(img, f"{bar:g} um", (bx, by - 6), FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    # labels last, so none is drawn over by a marker or another label
+    for text, at_, colour in outside:
+        labels.put(text, at_, colour)
+    for m, p, colour in inside:
+        labels.put(m.label, p, colour)
+    # legend (bottom right): the axis and the ellipses
+    lx, ly = x0 + plot - 118, y0 + plot - 12
+    cv2.drawMarker(img, (lx, ly - 4), CENTRE_INK, cv2.MARKER_CROSS, 12, 2, cv2.LINE_AA)
+    cv2.putText(img, "axis; ellipses k = 2", (lx + 10, ly), FONT, 0.38, (60, 60, 60), 1,
+                cv2.LINE_AA)
+    labels.put(f"tolerance {tol:g} um", (round(cx + tol * k * 0.71), round(cy - tol * k * 0.71)),
+               TOL_COLOUR)
+    return img
+
+
+def draw_convergence(run: dict[str, Any], width: int = WIDTH - PLOT_H, height: int = PLOT_H
                      ) -> np.ndarray:
-    """|offset| per iteration with its k = 2 uncertainty, log scale, tolerance line."""
+    """|offset| per measurement with its k = 2 uncertainty, log scale, tolerance line.
+    Align measurements are filled circles, verify measurements diamonds; a bar whose lower
+    end would be at or below zero (U larger than the offset) ends in an arrow."""
     img = np.full((height, width, 3), 255, np.uint8)
-    pts = _iteration_points(run)
-    tol = _find(run.get("config") or {}, ("tolerance_um",))
-    left, right, top, bottom = 70, 20, 30, 45
+    labels = Labels(img)
+    ms = _measurements(run)
+    tol = _tolerance(run)
+    left, right, top, bottom = 58, 16, 54, 42
     x0, x1, y0, y1 = left, width - right, top, height - bottom
-    cv2.putText(img, "offset per iteration (um, log scale; bars: U, k = 2)", (left, 20), FONT,
-                0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    if not pts:
-        cv2.putText(img, "no iterations recorded", (left, height // 2), FONT, 0.7,
+    cv2.putText(img, "|offset| per measurement (um, log; bars U, k = 2)", (8, 18), FONT, 0.45,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    labels.reserve((0, 0, width, 24))
+    if not ms:
+        cv2.putText(img, "no iterations recorded", (left, height // 2), FONT, 0.6,
                     (80, 80, 80), 1, cv2.LINE_AA)
         return img
-    vals = [p[1] for p in pts] + [p[1] + (p[2] or 0) for p in pts]
-    vals += [max(p[1] - (p[2] or 0), 0) for p in pts]
-    if tol:
-        vals.append(float(tol))
-    pos = [v for v in vals if v > 0] or [1.0]
-    lo = 10 ** math.floor(math.log10(min(pos)))
-    hi = 10 ** math.ceil(math.log10(max(pos) * 1.01))
+    # legend
+    lx = 10
+    sweep_kinds = sorted({m.kind for m in ms if m.kind != "verify"})
+    cv2.circle(img, (lx + 5, 33), 5, ALIGN_COLOUR, -1, cv2.LINE_AA)
+    name = "/".join(sweep_kinds) or "align"
+    cv2.putText(img, name, (lx + 14, 37), FONT, 0.4, ALIGN_COLOUR, 1, cv2.LINE_AA)
+    lx += 30 + cv2.getTextSize(name, FONT, 0.4, 1)[0][0]
+    if any(m.kind == "verify" for m in ms):
+        cv2.drawMarker(img, (lx + 5, 33), VERIFY_COLOUR, cv2.MARKER_DIAMOND, 11, 2, cv2.LINE_AA)
+        cv2.putText(img, "verify", (lx + 15, 37), FONT, 0.4, VERIFY_COLOUR, 1, cv2.LINE_AA)
+    labels.reserve((0, 24, lx + 70, 42))
+    tops = [m.norm_um + (m.U_um or 0.0) for m in ms] + ([tol] if tol else [])
+    lows = [m.norm_um for m in ms if m.norm_um > 0] + ([tol] if tol else [])
+    lows += [m.norm_um - m.U_um for m in ms if m.U_um and m.norm_um - m.U_um > 0]
+    lo = 10 ** math.floor(math.log10(min(lows or [1.0])))
+    hi = 10 ** math.ceil(math.log10(max(tops) * 1.05))
     if hi <= lo:
         hi = lo * 10
-    n_max = max(p[0] for p in pts)
-    n_min = min(p[0] for p in pts)
+    n = len(ms)
 
-    def px_x(n: float) -> int:
-        return round(x0 + (n - n_min + 0.5) / (n_max - n_min + 1) * (x1 - x0))
+    def px_x(i: int) -> int:
+        return round(x0 + (i + 0.5) / n * (x1 - x0))
 
     def px_y(v: float) -> int:
         v = max(v, lo)
@@ -241,31 +504,102 @@ def draw_convergence(run: dict[str, Any], width: int = WIDTH, height: int = PLOT
     while dec <= hi * 1.0001:
         y = px_y(dec)
         cv2.line(img, (x0, y), (x1, y), (225, 225, 225), 1)
-        cv2.putText(img, f"{dec:g}", (8, y + 4), FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        txt = f"{dec:g}"
+        tw = cv2.getTextSize(txt, FONT, 0.42, 1)[0][0]
+        cv2.putText(img, txt, (x0 - 6 - tw, y + 4), FONT, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
         dec *= 10
-    for n in range(int(n_min), int(n_max) + 1):
-        cv2.putText(img, str(n), (px_x(n) - 4, y1 + 18), FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, "iteration", ((x0 + x1) // 2 - 30, height - 8), FONT, 0.45, (0, 0, 0), 1,
-                cv2.LINE_AA)
-    if tol:
-        y = px_y(float(tol))
-        for xs in range(x0, x1, 12):
-            cv2.line(img, (xs, y), (min(xs + 6, x1), y), (0, 150, 0), 1)
-        cv2.putText(img, f"tolerance {float(tol):g} um", (x1 - 170, y - 6), FONT, 0.45,
-                    (0, 150, 0), 1, cv2.LINE_AA)
-    prev = None
-    for n, v, u in pts:
-        p = (px_x(n), px_y(v))
-        if u:
-            cv2.line(img, (p[0], px_y(v + u)), (p[0], px_y(max(v - u, lo))), (200, 80, 0), 1)
-            for yy in (px_y(v + u), px_y(max(v - u, lo))):
-                cv2.line(img, (p[0] - 5, yy), (p[0] + 5, yy), (200, 80, 0), 1)
-        if prev is not None:
-            cv2.line(img, prev, p, (0, 0, 200), 1, cv2.LINE_AA)
-        cv2.circle(img, p, 4, (0, 0, 200), -1, cv2.LINE_AA)
-        cv2.putText(img, f"{v:.3g}", (p[0] + 7, p[1] - 6), FONT, 0.4, (0, 0, 0), 1,
+    for i, m in enumerate(ms):
+        txt = m.label
+        tw = cv2.getTextSize(txt, FONT, 0.42, 1)[0][0]
+        cv2.putText(img, txt, (px_x(i) - tw // 2, y1 + 16), FONT, 0.42, (0, 0, 0), 1,
                     cv2.LINE_AA)
-        prev = p
+    cv2.putText(img, "iteration (v: verify)", ((x0 + x1) // 2 - 70, height - 8), FONT, 0.42,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    labels.reserve((0, y1 + 1, width, height))
+    if tol:
+        y = px_y(tol)
+        for xs in range(x0, x1, 12):
+            cv2.line(img, (xs, y), (min(xs + 6, x1), y), TOL_COLOUR, 1)
+    pts = []
+    for i, m in enumerate(ms):
+        p = (px_x(i), px_y(m.norm_um))
+        pts.append(p)
+        if m.U_um:
+            ytop = px_y(m.norm_um + m.U_um)
+            low = m.norm_um - m.U_um
+            ybot = px_y(low) if low > lo else y1
+            cv2.line(img, (p[0], ytop), (p[0], ybot), (200, 80, 0), 1)
+            cv2.line(img, (p[0] - 5, ytop), (p[0] + 5, ytop), (200, 80, 0), 1)
+            if low > lo:
+                cv2.line(img, (p[0] - 5, ybot), (p[0] + 5, ybot), (200, 80, 0), 1)
+            else:  # reaches zero: off a log axis; say so with an arrow
+                cv2.arrowedLine(img, (p[0], ybot - 14), (p[0], ybot - 1), (200, 80, 0), 1,
+                                cv2.LINE_AA, tipLength=0.5)
+            labels.reserve((p[0] - 6, ytop - 1, p[0] + 6, ybot + 1))
+    cv2.polylines(img, [np.array(pts, np.int32)], False, (120, 120, 120), 1, cv2.LINE_AA)
+    for m, p in zip(ms, pts, strict=True):
+        if m.kind == "verify":
+            cv2.drawMarker(img, p, VERIFY_COLOUR, cv2.MARKER_DIAMOND, 12, 2, cv2.LINE_AA)
+        else:
+            cv2.circle(img, p, 5, ALIGN_COLOUR, -1, cv2.LINE_AA)
+        labels.reserve((p[0] - 7, p[1] - 7, p[0] + 7, p[1] + 7))
+    if tol:
+        labels.put(f"tolerance {tol:g} um", (x1 - 150, px_y(tol)), TOL_COLOUR)
+    for m, p in zip(ms, pts, strict=True):
+        labels.put(f"{m.norm_um:.3g}", p, (0, 0, 0))
+    if any(m.U_um and m.norm_um - m.U_um <= lo for m in ms):
+        labels.put("arrow: U > offset (bar reaches 0)", (x0 + 4, y1 - 4), (200, 80, 0))
+    return img
+
+
+def report_notes(run: dict[str, Any]) -> list[str]:
+    """The text block's lines: the verdict's reason, then (when the record has them) the
+    decision rule and the uncertainty budget."""
+    result = run.get("result") or {}
+    lines = []
+    reason = run.get("reason") or result.get("reason")
+    if reason:
+        lines.append(f"verdict: {run.get('verdict') or result.get('verdict')}: {reason}")
+    rule = result.get("decision_rule")
+    if isinstance(rule, str) and rule:
+        lines.append(f"decision rule: {rule}")
+    budget = result.get("budget")
+    if isinstance(budget, list) and budget:
+        parts = []
+        for row in budget:
+            if isinstance(row, dict) and row.get("name") is not None:
+                v = row.get("u_um", row.get("value"))
+                parts.append(f"{row['name']} {v:.2g}" if isinstance(v, (int, float))
+                             else str(row["name"]))
+        if parts:
+            lines.append("uncertainty budget (u, um): " + ", ".join(parts))
+    return lines
+
+
+def _wrap(text: str, width_px: int, size: float) -> list[str]:
+    out, cur = [], ""
+    for word in text.split():
+        trial = f"{cur} {word}".strip()
+        if cur and cv2.getTextSize(trial, FONT, size, 1)[0][0] > width_px:
+            out.append(cur)
+            cur = word
+        else:
+            cur = trial
+    return [*out, cur] if cur else out
+
+
+def draw_notes(run: dict[str, Any], width: int = WIDTH, height: int = NOTES_H) -> np.ndarray:
+    img = np.full((height, width, 3), 246, np.uint8)
+    cv2.line(img, (0, 0), (width, 0), (200, 200, 200), 1)
+    y = 20
+    for line in report_notes(run):
+        for part in _wrap(line.replace("±", "+/-"), width - 20, 0.45):
+            if y > height - 6:
+                cv2.putText(img, "... (see the JSON)", (width - 160, height - 6), FONT, 0.42,
+                            (80, 80, 80), 1, cv2.LINE_AA)
+                return img
+            cv2.putText(img, part, (10, y), FONT, 0.45, (30, 30, 30), 1, cv2.LINE_AA)
+            y += 19
     return img
 
 
@@ -294,8 +628,9 @@ def draw_header(run: dict[str, Any], width: int = WIDTH) -> np.ndarray:
 
 
 def render_report(run: dict[str, Any], image: np.ndarray | None) -> np.ndarray:
-    """The report image (BGR): header, top view, convergence plot."""
-    return np.vstack([draw_header(run), draw_top_view(run, image), draw_convergence(run)])
+    """The report image (BGR): header, top view, zoom beside the convergence plot, notes."""
+    lower = np.hstack([draw_zoom(run), draw_convergence(run)])
+    return np.vstack([draw_header(run), draw_top_view(run, image), lower, draw_notes(run)])
 
 
 def write_report(run: dict[str, Any], out_dir: Path, image: np.ndarray | None

@@ -589,6 +589,20 @@ class Store:
                 (run_id,))]
         return run
 
+    def run_counts(self) -> dict[tuple[str, str], int]:
+        """Runs by (kind, verdict); a run still going counts under its status."""
+        with self._reader() as conn:
+            rows = conn.execute("SELECT kind, COALESCE(verdict, status), COUNT(*) FROM runs "
+                                "GROUP BY kind, COALESCE(verdict, status)").fetchall()
+        return {(str(r[0]), str(r[1])): int(r[2]) for r in rows}
+
+    def last_finished(self) -> dict[str, dict[str, Any]]:
+        """The newest finished run of each kind, as summaries."""
+        with self._reader() as conn:
+            rows = conn.execute("SELECT * FROM runs WHERE id IN (SELECT MAX(id) FROM runs "
+                                "WHERE verdict IS NOT NULL GROUP BY kind)").fetchall()
+        return {str(r["kind"]): self._summary(r) for r in rows}
+
     def run_status(self, run_id: int) -> tuple[str, str | None] | None:
         """(status, verdict) of a run, cheaply; ``None`` if unknown."""
         with self._reader() as conn:

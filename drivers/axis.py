@@ -59,6 +59,9 @@ class AxisStatus:
         return self.limit_low or self.limit_high
 
 
+MOVE_TIMEOUT_FLOOR_S = 2.0  # real seconds added to every move's timeout
+
+
 def move_timeout_s(distance: float, speed: float, accel: float, margin: float = 2.0,
                    floor_s: float = 2.0) -> float:
     """Time a trapezoidal move of ``distance`` needs, times ``margin``, plus a floor."""
@@ -237,7 +240,10 @@ class Axis(ABC):
 
     def _move_and_wait(self, target: float, start: float) -> None:
         cfg = self.config
-        timeout = move_timeout_s(target - start, cfg.speed, cfg.accel) / max(cfg.time_scale, 1e-9)
+        # the motion's time scales with a simulator's clock; the floor (polling, link
+        # latency, a loaded machine) does not: at time_scale 200 a scaled floor was 10 ms
+        timeout = move_timeout_s(target - start, cfg.speed, cfg.accel, floor_s=0.0) / max(
+            cfg.time_scale, 1e-9) + MOVE_TIMEOUT_FLOOR_S
         self._start_move(target)
         self.wait_until_stopped(timeout, command=f"move to {target:.6g}")
 

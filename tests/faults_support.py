@@ -203,13 +203,13 @@ class DaemonProc:
 def sim_daemon(*, faults: Iterable[dict[str, Any]] = (), procedure: dict[str, Any] | None = None,
                time_scale: float = 200.0, seed: int = 3, env: dict[str, str] | None = None,
                wait: bool = True, reply_timeout_s: float | None = None,
-               **top: Any) -> Iterator[DaemonProc]:
+               args: Iterable[str] = (), **top: Any) -> Iterator[DaemonProc]:
     tmp = short_tmp()
     path, cfg = write_config(tmp, faults=faults, procedure=procedure, time_scale=time_scale,
                              seed=seed, reply_timeout_s=reply_timeout_s, **top)
     dp = DaemonProc(tmp, path, cfg, seed=seed, env=env or {})
     try:
-        yield dp.start(wait)
+        yield dp.start(wait, *args)
     finally:  # SIGKILL: a graceful exit is scenario 15's business, and waiting costs time
         dp.kill()
         shutil.rmtree(tmp, ignore_errors=True)

@@ -263,10 +263,10 @@ def test_cli_align_and_check_exit_codes(capsys: pytest.CaptureFixture) -> None:
         assert result["verdict"] == "aligned" and result["run_id"] == 1
         assert {"offset_um", "offset_norm_um", "U_um", "iterations", "tilt_deg", "yaw_deg",
                 "reason", "truth"} <= set(result)
-        assert "[sweep] iteration 1 step 1/5" in err and "offset 854.4 ± 5.0 um" in err
+        assert "[sweep] iteration 1 step 1/5" in err and "offset 854.4 ± 5.0 µm" in err
         assert alignctl(["check", "--socket", env.sock]) == 1  # --socket after the command
         out, _ = capsys.readouterr()
-        assert "run 2: out_of_tolerance" in out and "offset     53.4 ± 5.0 um" in out
+        assert "run 2: out_of_tolerance" in out and "offset     53.4 ± 5.0 µm" in out
         assert ctl(env.sock, "status") == 0
         assert "state: idle" in capsys.readouterr().out
         assert ctl(env.sock, "history", "--json") == 0
@@ -327,7 +327,8 @@ def test_cli_report_writes_png_and_json(capsys: pytest.CaptureFixture, tmp: Path
         assert ctl(env.sock, "report", str(run_id), "--out", str(tmp / "rep"), "--json") == 0
         paths = json.loads(capsys.readouterr().out)
         img = cv2.imread(paths["png"])
-        assert img.shape == (report.HEADER_H + 540 + report.PLOT_H, report.WIDTH, 3)
+        assert img.shape == (report.HEADER_H + 540 + report.PLOT_H + report.NOTES_H,
+                             report.WIDTH, 3)
         rec = json.loads(Path(paths["json"]).read_text())
         assert rec["id"] == run_id and rec["result"]["verdict"] == "aligned"
         assert len(rec["sweeps"]) == 2
@@ -443,7 +444,8 @@ def test_report_files_are_wholly_old_or_new_after_sigkill(tmp: Path) -> None:
 
 def test_report_without_frame_or_iterations_still_renders() -> None:
     img = report.render_report({"id": 3, "kind": "check", "status": "interrupted"}, None)
-    assert img.shape == (report.HEADER_H + 540 + report.PLOT_H, report.WIDTH, 3)
+    assert img.shape == (report.HEADER_H + 540 + report.PLOT_H + report.NOTES_H,
+                         report.WIDTH, 3)
     assert np.isfinite(img).all()
 
 

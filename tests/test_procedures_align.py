@@ -88,7 +88,7 @@ def test_abort_between_sweep_steps() -> None:
             abort.set()
 
     res = run_alignment(rig, cfg, tools=standin_tools(4), progress=progress, abort=abort)
-    assert res.verdict == "aborted" and res.reason == "aborted: abort requested"
+    assert res.verdict == "aborted" and res.reason == "abort requested"
     sweep_steps = [e.step for e in seen if e.phase == "sweep"]
     assert max(sweep_steps) == 5  # nothing after the abort
     assert not any(ax.moving for ax in rig.sim_parts.sim_axes.values())  # type: ignore

@@ -7,6 +7,7 @@ import argparse
 import importlib
 import logging
 import os
+import re
 import sys
 from collections.abc import Sequence
 
@@ -40,9 +41,32 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# options whose value may start with '-' (a list of negative numbers): argparse would take
+# "--angles -10,-9,..." for two options, so such values are joined as "--angles=-10,-9,..."
+NUMERIC_LIST_OPTIONS = ("--angles", "--expected-size", "--principal")
+_NUMBER_START = re.compile(r"^-\.?\d")
+
+
+def join_negative_values(argv: Sequence[str]) -> list[str]:
+    out: list[str] = []
+    it = iter(argv)
+    for tok in it:
+        if tok in NUMERIC_LIST_OPTIONS:
+            nxt = next(it, None)
+            if nxt is None:
+                out.append(tok)
+            elif _NUMBER_START.match(nxt):
+                out.append(f"{tok}={nxt}")
+            else:
+                out.extend([tok, nxt])
+        else:
+            out.append(tok)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))
     logging.basicConfig(level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
                         format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):

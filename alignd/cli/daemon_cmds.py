@@ -21,6 +21,7 @@ from typing import Any
 
 from alignd.client import ApiError, Client, DaemonUnreachable, resolve_socket
 from alignd.procedures.result import EXIT_CODES
+from alignd.textfmt import identity_text, micro, with_micro
 
 EXIT_OK, EXIT_OUT_OF_TOLERANCE, EXIT_USAGE, EXIT_FAULT = 0, 1, 2, 3
 EXIT_SKIPPED = 75  # EX_TEMPFAIL, --started-by timer only: busy/starting/faulted -> skipped
@@ -83,7 +84,12 @@ def _fmt_offset(d: dict[str, Any]) -> str:
     norm, u = d.get("offset_norm_um"), d.get("U_um")
     if norm is None:
         return "-"
-    return f"{norm:.1f} ± {u:.1f} um" if u is not None else f"{norm:.1f} um"
+    um = micro()
+    return f"{norm:.1f} ± {u:.1f} {um}" if u is not None else f"{norm:.1f} {um}"
+
+
+def _fmt_position(v: float, units: str) -> str:
+    return f"{v:.3f} deg" if units == "deg" else f"{v:.4f} {units}"
 
 
 # ---- status -----------------------------------------------------------------------------------
@@ -92,15 +98,28 @@ def status_text(st: dict[str, Any]) -> str:
 
     lines = [f"alignd {st.get('version', '?')} '{st.get('name', '?')}' at "
              f"{st.get('socket') or '?'}",
-             f"state: {status_line(st)}"]
+             f"state: {with_micro(status_line(st))}"]
     last = st.get("last_run")
     if last:
         lines.append(f"last run: {last['id']} ({last['kind']}) {last['verdict']}"
-                     + (f": {last['reason']}" if last.get("reason") else ""))
-    for role, ident in sorted((st.get("devices") or {}).items()):
-        if isinstance(ident, dict):
-            lines.append(f"  {role:10s} {ident.get('vendor', '')} {ident.get('model', '')} "
-                         f"s/n {ident.get('serial', '?')} fw {ident.get('firmware', '?')}")
+                     + (f": {with_micro(last['reason'])}" if last.get("reason") else ""))
+    if st.get("web"):
+        lines.append(f"dashboard: {st['web']} (read-only)")
+    devices = st.get("devices") or {}
+    axes = st.get("axes") or {}
+    if devices or axes:
+        lines.append("axes:")
+    for role in sorted(set(devices) | set(axes)):
+        ident = devices.get(role)
+        text = identity_text(ident) if isinstance(ident, dict) else "?"
+        ax = axes.get(role) if isinstance(axes.get(role), dict) else {}
+        where = "position not read yet"
+        if ax.get("position") is not None:
+            where = _fmt_position(float(ax["position"]), str(ax.get("units") or ""))
+            if ax.get("age_s") is not None:
+                where += f" (read {_fmt_age(float(ax['age_s']))} ago)"
+        homed = {True: "homed", False: "NOT homed"}.get(ax.get("homed"), "homed ?")
+        lines.append(f"  {role:10s} {where:34s} {homed:9s}  {text}")
     for role, cam in sorted((st.get("cameras") or {}).items()):
         if isinstance(cam, dict):
             size = cam.get("size")
@@ -111,6 +130,10 @@ def status_text(st: dict[str, Any]) -> str:
     for warning in st.get("warnings") or []:
         lines.append(f"  warning: {warning}")
     return "\n".join(lines)
+
+
+def _fmt_age(s: float) -> str:
+    return f"{s:.0f} s" if s < 120 else f"{s / 60:.0f} min" if s < 7200 else f"{s / 3600:.0f} h"
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -134,7 +157,7 @@ def progress_text(ev: dict[str, Any]) -> str:
             parts.append(f"step {ev['step']}/{ev['total']}")
         if ev.get("message"):
             parts.append(str(ev["message"]))
-        if ev.get("offset_norm_um") is not None:
+        if ev.get("offset_norm_um") is not None and "offset" not in str(ev.get("message")):
             parts.append(f"offset {_fmt_offset(ev)}")
         return " ".join(parts)
     if kind == "end":
@@ -161,6 +184,17 @@ def result_text(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def repeats_result(ev: dict[str, Any]) -> bool:
+    """Events that only repeat the outcome the run's result is about to print: the "done"
+    phase, the recorded "<kind> finished: ..." note and the end event."""
+    if ev.get("type") == "end":
+        return True
+    if ev.get("type") == "progress" and ev.get("phase") == "done":
+        return True
+    msg = str(ev.get("msg") or "")
+    return ev.get("type") == "event" and msg.split(" finished: ", 1)[0] in ("align", "check")
+
+
 class _ProgressPrinter:
     """Progress on stderr: sweep steps overwrite one line on a terminal."""
 
@@ -170,9 +204,9 @@ class _ProgressPrinter:
         self._open = False
 
     def __call__(self, ev: dict[str, Any]) -> None:
-        if self.quiet:
+        if self.quiet or repeats_result(ev):
             return
-        text = progress_text(ev)
+        text = with_micro(progress_text(ev), sys.stderr)
         stepping = ev.get("type") == "progress" and ev.get("step") is not None
         if self.tty and stepping:
             sys.stderr.write("\r\x1b[K" + text)
@@ -265,7 +299,7 @@ def _run_cmd(args: argparse.Namespace, kind: str) -> int:
     if args.json:
         _print_json(result)
     else:
-        print(result_text(result))
+        print(with_micro(result_text(result)))
     return exit_code(result)
 
 
@@ -324,7 +358,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     elif not runs:
         print("no runs recorded yet")
     else:
-        print(history_table(runs))
+        print(with_micro(history_table(runs)))
     return EXIT_OK
 
 

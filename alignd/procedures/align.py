@@ -32,6 +32,7 @@ from alignd.procedures.result import RunResult
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
 from alignd.procedures.sweep import CentrePool, Measurement, grab_fresh, measure
 from alignd.procedures.tools import Tools, default_tools
+from alignd.textfmt import identity_text
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +153,7 @@ class _Run:
                 self._warn(f"could not park the turntable: {exc}")
         except AbortRequested as exc:
             errs = self.rig.stop_all()
-            verdict, reason = "aborted", f"aborted: {exc}" + (
+            verdict, reason = "aborted", f"{exc}" + (
                 f" (stop failed: {'; '.join(errs)})" if errs else "")
         except (ConfigError, StateError) as exc:
             self.rig.stop_all()
@@ -256,8 +257,7 @@ class _Run:
         self._emit("connect", "connecting and identifying devices")
         self.rig.connect()
         for role, ident in self.rig.identities.items():
-            self.recorder.event(f"{role}: {ident.vendor} {ident.model} s/n {ident.serial} "
-                                f"fw {ident.firmware}")
+            self.recorder.event(f"{role}: {identity_text(vars(ident))}")
         if self.tools is None:
             self.tools = default_tools()
         # before anything moves: a sweep the soft limits forbid is a config error

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from alignd.errors import AligndError, ConfigError, StateError
+from alignd.textfmt import identity_text
 from drivers.axis import Axis, Identity
 from drivers.camera import Camera
 
@@ -72,9 +73,8 @@ class Rig:
             ax.connect()
             self.identities[role] = ax.identify()
             self.warnings += ax.check_identity(self.identities[role])
-            log.info("%s: %s %s s/n %s fw %s on %s", role, self.identities[role].vendor,
-                     self.identities[role].model, self.identities[role].serial,
-                     self.identities[role].firmware, ax.port)
+            log.info("%s: %s on %s", role, identity_text(vars(self.identities[role])),
+                     ax.port)
         for cam in self.cameras.values():
             cam.open()
         return dict(self.identities)

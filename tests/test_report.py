@@ -1,0 +1,104 @@
+"""Issue 14: the report figure reads the same in every run: a fixed scale, labels that
+never cover each other, error bars that say when they leave the axis, the text block."""
+
+from __future__ import annotations
+
+import itertools
+from typing import Any
+
+import numpy as np
+
+from alignd import report
+
+
+def _run(offsets: list[tuple[float, float]], U: float = 4.0, kind: str = "align",
+         tol: float = 10.0, cov_px2: float = 1e-4) -> dict[str, Any]:
+    recs = []
+    for i, (x, y) in enumerate(offsets):
+        recs.append({"n": i + 1, "iteration": i + 1,
+                     "kind": "verify" if kind == "align" and i == len(offsets) - 1 else kind,
+                     "centre_px": [640.0, 360.0], "cov_centre_px2": np.eye(2).tolist(),
+                     "offset_um": [x, y], "offset_norm_um": float(np.hypot(x, y)), "U_um": U,
+                     "cov_offset_um2": (np.eye(2) * (U / 2) ** 2 / 2).tolist(),
+                     "scale_px_per_mm": 6.5})
+    recs[0]["cov_centre_px2"] = (np.eye(2) * cov_px2).tolist()
+    return {"id": 1, "kind": kind, "verdict": "aligned", "reason": "ok",
+            "config": {"procedure": {"tolerance_um": tol}}, "iteration_records": recs,
+            "result": {"verdict": "aligned"}}
+
+
+def _mask(img: np.ndarray, colour: tuple[int, int, int]) -> np.ndarray:
+    return np.all(np.abs(img.astype(int) - colour) < 40, axis=2)
+
+
+def test_zoom_scale_does_not_depend_on_the_run() -> None:
+    """The tolerance circle and the scale bar land on the same pixels whatever the run's
+    offsets and uncertainties (the old figure magnified the ellipse per run)."""
+    a = report.draw_zoom(_run([(2000.0, 300.0), (3.0, 1.0)], U=9.0, cov_px2=1e-6))
+    b = report.draw_zoom(_run([(0.2, 0.1)], U=0.5, cov_px2=1e-2))
+    tol_a, tol_b = _mask(a, report.TOL_COLOUR), _mask(b, report.TOL_COLOUR)
+    circle = np.zeros_like(tol_a)
+    circle[30:, :] = True  # below the title (the tolerance label may move)
+    ys, xs = np.nonzero(tol_a & circle)
+    r = np.hypot(xs - xs.mean(), ys - ys.mean())
+    assert (tol_a & tol_b).sum() > 0.6 * tol_a.sum()
+    # the circle's radius is tolerance * fixed px/um: field = ZOOM_FIELD_TOLERANCES * tol
+    plot = report.PLOT_H - 28 - 10
+    assert abs(np.median(r) - plot / report.ZOOM_FIELD_TOLERANCES) < 4
+
+
+def test_zoom_shows_far_offsets_as_arrows_on_the_edge() -> None:
+    img = report.draw_zoom(_run([(2000.0, 0.0), (1.0, 1.0)]))
+    red = _mask(img, report.ALIGN_COLOUR)
+    w = red.shape[1]
+    plot = report.PLOT_H - 28 - 10
+    right = (w - plot) // 2 + plot
+    ys, xs = np.nonzero(red)
+    assert right - 10 <= xs.max() <= right  # the arrow's tip on the field's right edge
+    tip_rows = ys[xs >= right - 10]
+    assert abs(tip_rows.mean() - (28 + plot / 2)) < 4  # at the height of the axis (y = 0)
+
+
+def test_labels_never_overlap() -> None:
+    img = np.zeros((200, 300, 3), np.uint8)
+    labels = report.Labels(img)
+    placed = [labels.put(f"{v:.3g}", (150, 100), (255, 255, 255)) for v in range(12)]
+    assert sum(placed) >= 8
+    for a, b in itertools.combinations(labels.boxes, 2):
+        assert a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1], (a, b)
+
+
+def test_convergence_bar_below_zero_ends_in_an_arrow_not_a_cap() -> None:
+    run = _run([(3.0, 0.0), (0.4, 0.0)], U=9.0)
+    img = report.draw_convergence(run)
+    bar = _mask(img, (200, 80, 0))
+    h = img.shape[0]
+    y1 = h - 42
+    cols = np.nonzero(bar[y1 - 3])[0]
+    assert len(cols) >= 2  # both bars reach the axis' bottom
+    # the markers are distinct: one align circle, one verify diamond
+    assert _mask(img, report.ALIGN_COLOUR).any() and _mask(img, report.VERIFY_COLOUR).any()
+
+
+def test_convergence_labels_do_not_collide_for_a_repeated_iteration() -> None:
+    """Iteration 3 measured twice (align, then verify) gets two x positions and labels."""
+    run = _run([(2000.0, 0.0), (4.0, 0.0), (0.5, 0.0), (0.55, 0.0)])
+    run["iteration_records"][3]["iteration"] = 3
+    ms = report._measurements(run)
+    assert [m.label for m in ms] == ["1", "2", "3", "v3"]
+    img = report.draw_convergence(run)
+    assert img.shape == (report.PLOT_H, report.WIDTH - report.PLOT_H, 3)
+
+
+def test_text_block_carries_the_decision_rule_and_budget() -> None:
+    run = _run([(1.0, 0.0)])
+    run["result"].update(decision_rule="accept when |offset| + U <= tolerance",
+                         budget=[{"name": "centre", "u_um": 1.2}, {"name": "scale", "u_um": 0.3}])
+    lines = report.report_notes(run)
+    assert lines[0] == "verdict: aligned: ok"
+    assert lines[1] == "decision rule: accept when |offset| + U <= tolerance"
+    assert lines[2] == "uncertainty budget (u, um): centre 1.2, scale 0.3"
+    img = report.render_report(run, np.full((720, 1280), 128, np.uint8))
+    assert img.shape == (report.HEADER_H + 540 + report.PLOT_H + report.NOTES_H, report.WIDTH, 3)
+    notes = img[-report.NOTES_H:]
+    assert (notes < 100).any()  # the text is there
