@@ -8,26 +8,28 @@ import threading
 
 import numpy as np
 import pytest
-from procedures_support import commanded, scene_rig, sim_config, standin_tools
+from procedures_support import (commanded, commissioned, full_turn_config, scene_rig,
+                                sim_config, standin_tools)
 
 from alignd.procedures import MemoryRecorder, ProgressEvent, run_alignment, run_check
 from alignd.procedures.tools import Corners
 from alignd.solve import parse_sweep
 
 TRANSLATIONS = ("x", "y", "z", "translator")
-CONTRACT_KEYS = {"run_id", "verdict", "offset_um", "offset_norm_um", "U_um", "iterations",
-                 "tilt_deg", "yaw_deg", "reason"}
+CONTRACT_KEYS = {"run_id", "verdict", "offset_um", "offset_norm_um", "U_um", "iterations", "sweeps",
+                 "tilt_deg", "yaw_deg", "reason", "decision", "budget"}
 
 
 @pytest.mark.parametrize("seed", [1, 7, 23])
 def test_alignment_converges_to_the_true_axis(seed: int) -> None:
-    cfg = sim_config()
+    cfg = full_turn_config()
     rig, world = scene_rig(cfg, seed)
     start = world.truth()["offset_norm_um"]
+    runout = commissioned(rig, cfg, seed)
     rec = MemoryRecorder()
     events: list[ProgressEvent] = []
     res = run_alignment(rig, cfg, tools=standin_tools(seed), recorder=rec,
-                        progress=events.append, abort=threading.Event())
+                        progress=events.append, abort=threading.Event(), runout=runout)
     out = res.to_json()
     assert start > 1000  # a few mm of initial misalignment
     assert out["verdict"] == "aligned", out["reason"]
@@ -37,13 +39,21 @@ def test_alignment_converges_to_the_true_axis(seed: int) -> None:
     # the reported offset agrees with the simulator's within its expanded uncertainty
     err = math.hypot(out["offset_um"][0] - truth[0], out["offset_um"][1] - truth[1])
     assert err <= out["U_um"]
-    assert 1 <= out["iterations"] <= cfg.procedure.max_iterations
+    assert 1 <= out["iterations"] <= 3  # correction moves
+    assert out["sweeps"] == out["iterations"] + 1  # one sweep per move plus the verdict's
+    assert out["U_um"] <= 5.0
+    assert out["decision"]["outcome"] == "conforms" and out["decision"]["rule"] == "guarded"
+    assert out["offset_norm_um"] <= 10.0 - out["U_um"]
+    names = [c["name"] for c in out["budget"]["contributions"]]
+    assert names == ["centre fit", "target point", "pixel scale", "residual error motion",
+                     "stage repeatability"]
+    assert out["budget"]["U_um"] == pytest.approx(out["U_um"], abs=0.002)
     assert out["yaw_deg"] == pytest.approx(world.yaw_deg, abs=0.05)
     assert out["tilt_deg"] == pytest.approx(world.cfg.tilt_deg, abs=1e-6)
     assert res.exit_code == 0
     # raw data: contract sweep files, one record per iteration, progress with offsets
     kinds = [s.kind for s in rec.sweeps]
-    assert kinds[0] == "calibration" and kinds[-1] == "verify"
+    assert kinds[0] == "calibration" and kinds[-1] == "align"
     for s in rec.sweeps[1:]:
         sw = parse_sweep(s.sweep_json)
         assert sw.n_frames == cfg.procedure.sweep_steps and sw.n_features == 4
