@@ -22,7 +22,7 @@ CONTRACT_KEYS = {"run_id", "verdict", "offset_um", "offset_norm_um", "U_um", "it
 
 @pytest.mark.parametrize("seed", [1, 7, 23])
 def test_alignment_converges_to_the_true_axis(seed: int) -> None:
-    cfg = full_turn_config()
+    cfg = full_turn_config(decision_rule="guarded")
     rig, world = scene_rig(cfg, seed)
     start = world.truth()["offset_norm_um"]
     runout = commissioned(rig, cfg, seed)

@@ -476,21 +476,28 @@ class Floor:
     kind: Literal["A", "B"] = "B"
 
 
-def runout_floor(runout: RunoutMap | None, assumed_um: float,
-                 harmonics_per_axis: int = 8) -> Floor:
+def runout_floor(runout: RunoutMap | None, assumed_um: float) -> Floor:
     """The per-axis floor a runout map leaves: the map's own uncertainty.
 
-    ``residual_um`` is the per-point scatter of the commissioning fit; a least-squares map
-    with p coefficients per axis over n angles carries on average sqrt(p / n) of it. Without
-    a map the turntable's error motion is not corrected and ``assumed_um`` stands for it.
+    Taken as the commissioning fit's per-point scatter ``residual_um`` (not divided down by
+    the number of angles: model mismatch, perspective and the tracker's own systematic
+    errors do not average out), plus, for a map short of a full turn, the error motion
+    the rigid fit over the covered range mistakes for axis and arm: a few per cent of the
+    amplitude per missing per cent of the turn (about 1 um for 3 um over 340 deg in the
+    simulator). Without a map the error motion is not corrected and ``assumed_um``
+    stands for it.
     """
     if runout is None:
         return Floor(assumed_um, f"assumed procedure.systematic_um {assumed_um:g} um/axis "
                      "(no runout map: run alignctl commission)", "B")
-    n = len(runout.angles_deg)
-    u = runout.residual_um * math.sqrt(min(harmonics_per_axis / max(n, 1), 1.0))
-    return Floor(u, f"runout map uncertainty ({runout.residual_um:.2f} um per point over "
-                 f"{n} angles)", "A")
+    a = runout.angles_deg
+    step = float(np.median(np.diff(a)))
+    missing = 0.0 if runout.full_turn else max(360.0 - float(a[-1] - a[0]) - step, 0.0) / 360
+    u_partial = 4.0 * missing * runout.amplitude_um
+    u = math.hypot(runout.residual_um, u_partial)
+    return Floor(u, f"runout map: {runout.residual_um:.2f} um per point over {len(a)} angles"
+                 + (f", {u_partial:.2f} um for the {360 * missing:.0f} deg it misses"
+                    if missing else ""), "A")
 
 
 def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
@@ -652,11 +659,10 @@ def sweep_runout(rig: Rig, cfg: AligndConfig, tools: Tools, *, half_deg: float =
                  recorder: RunRecorder | None = None) -> RunoutMap:
     """Map the turntable's error motion with one wide sweep (what commissioning does).
 
-    The holder is tracked at every step; its centre's path, less the best rigid rotation,
-    is the error motion (``fit_runout``). The angles are the images' own (the rigid solver's
-    estimates): an encoder's periodic error turns the holder's arm, which a fit on the
-    read-back angles would mistake for error motion. A full turn (the default) maps it
-    about the mean axis; the turntable's soft limits must allow the sweep.
+    The holder's centre (the mean of its four corners, whatever order a tracker gives them
+    in over a wide turn) is tracked at every step; its path, less the best rigid rotation,
+    is the error motion (``fit_runout``). A full turn (the default) maps it about the mean
+    axis; the turntable's soft limits must allow the sweep.
     """
     from alignd.procedures.recorder import NullRecorder
     from alignd.procedures.runout import fit_runout
@@ -671,13 +677,13 @@ def sweep_runout(rig: Rig, cfg: AligndConfig, tools: Tools, *, half_deg: float =
     if int(ok.sum()) < 8:
         raise VisionError(f"runout sweep: holder tracked in only {int(ok.sum())} of "
                           f"{len(angles)} frames")
-    scale = float(np.mean([holder_pose(data.points[i], cfg.holder).scale_px_per_mm
-                           for i in np.flatnonzero(ok)]))
+    # the scale from the holder's edges, longer to longer (order-free)
+    long_mm, short_mm = max(cfg.holder.size_mm), min(cfg.holder.size_mm)
+    scales = []
+    for i in np.flatnonzero(ok):
+        c = data.points[i]
+        e = np.hypot(*(np.roll(c, -1, axis=0) - c).T)  # the four edge lengths
+        a_len, b_len = (e[0] + e[2]) / 2, (e[1] + e[3]) / 2
+        scales.append((max(a_len, b_len) / long_mm + min(a_len, b_len) / short_mm) / 2)
     centres = data.points.mean(axis=1)  # NaN rows where tracking failed
-    readback = np.asarray(data.readback_deg)
-    try:
-        angles = np.asarray(tools.solve(readback, data.points, None).angles_deg, float)
-    except (SolveError, ValueError, np.linalg.LinAlgError) as exc:
-        raise SolveError(f"runout sweep: angles from the images failed: {exc}") from exc
-    angles = np.where(np.isfinite(angles), angles, readback)
-    return fit_runout(angles, centres, 1.0 / scale)
+    return fit_runout(np.asarray(data.readback_deg), centres, 1.0 / float(np.mean(scales)))
