@@ -8,8 +8,14 @@ import threading
 
 import numpy as np
 import pytest
-from procedures_support import (commanded, commissioned, full_turn_config, scene_rig,
-                                sim_config, standin_tools)
+from procedures_support import (
+    commanded,
+    commissioned,
+    full_turn_config,
+    scene_rig,
+    sim_config,
+    standin_tools,
+)
 
 from alignd.procedures import MemoryRecorder, ProgressEvent, run_alignment, run_check
 from alignd.procedures.tools import Corners
@@ -225,3 +231,66 @@ def test_homes_unreferenced_axes_and_parks_them_mid_travel() -> None:
     assert all(ax.homed for ax in sims.values())
     assert commanded(rig, "z")[0] == pytest.approx(25.0)  # middle of its soft limits
     assert res.verdict == "aligned", res.reason
+
+
+def test_check_answers_from_one_sweep_and_counts_no_moves() -> None:
+    cfg = full_turn_config(decision_rule="guarded")
+    rig, world = scene_rig(cfg, 3)
+    runout = commissioned(rig, cfg, 3)
+    assert run_alignment(rig, cfg, tools=standin_tools(3), runout=runout).verdict == "aligned"
+    res = run_check(rig, cfg, tools=standin_tools(4, sigma_px=0.005), runout=runout)
+    out = res.to_json()
+    assert out["verdict"] == "within_tolerance", out["reason"]
+    assert out["iterations"] == 0 and out["sweeps"] == 1  # a check makes no move
+    assert out["reason"].startswith(f"within 10 um: offset {out['offset_norm_um']:.1f} um, U ")
+    assert "0 moves, 1 sweep" in out["reason"]
+    assert out["decision"]["accept_below_um"] == pytest.approx(10.0 - out["U_um"], abs=0.002)
+    truth = world.truth()["offset_um"]
+    assert math.hypot(out["offset_um"][0] - truth[0], out["offset_um"][1] - truth[1]) \
+        <= out["U_um"]
+
+
+def test_an_undecided_check_measures_better_before_answering() -> None:
+    # the sample 5.5 um off the axis: one +-10 deg sweep (U about 5.5 um) cannot decide,
+    # a better measurement can (the map's floor alone is about 3 um)
+    cfg = full_turn_config(decision_rule="guarded")
+    rig, world = scene_rig(cfg, 5)
+    runout = commissioned(rig, cfg, 5)
+    assert run_alignment(rig, cfg, tools=standin_tools(5), runout=runout).verdict == "aligned"
+    tr = np.asarray(world.truth()["offset_um"], float)
+    d = world.stage_directions()["x"]
+    want = 5.5
+    # move x by s so that |tr + s d| = want (the root of a quadratic in s)
+    b, c = float(tr @ d), float(tr @ tr) - want**2
+    s_um = -b + math.sqrt(b * b - c)
+    x = rig.axis("x")
+    x.move_to(x.position() + s_um / 1000.0)
+    before = {r: len(commanded(rig, r)) for r in TRANSLATIONS}
+    rec = MemoryRecorder()
+    res = run_check(rig, cfg, tools=standin_tools(6), runout=runout, recorder=rec)
+    records = [r for _, r in rec.iterations]
+    assert records[0]["action"] == "measure better", records[0]["decision"]["text"]
+    assert records[0]["next"] == "widening the sweep to +-20 deg"
+    assert records[1]["plan"]["half_deg"] == 20.0
+    assert res.sweeps >= 2 and res.iterations == 0
+    # later sweeps pool the centre: the uncertainty falls
+    assert records[-1]["U_um"] < records[0]["U_um"]
+    assert res.verdict == "within_tolerance", res.reason
+    assert {r: len(commanded(rig, r)) for r in TRANSLATIONS} == before
+
+
+@pytest.mark.parametrize("repeatability_um", [1.0, 4.0])
+def test_no_move_gains_less_than_the_stages_repeatability(repeatability_um: float) -> None:
+    cfg = full_turn_config(decision_rule="guarded", stage_repeatability_um=repeatability_um)
+    rig, _ = scene_rig(cfg, 7)
+    runout = commissioned(rig, cfg, 7)
+    rec = MemoryRecorder()
+    res = run_alignment(rig, cfg, tools=standin_tools(7), runout=runout, recorder=rec)
+    records = [r for _, r in rec.iterations]
+    moves = [r for r in records if r["action"] == "move"]
+    assert moves and all(r["gain_um"] > repeatability_um for r in moves)
+    assert records[-1]["action"] in ("done", "stop")
+    assert records[-1]["gain_um"] <= repeatability_um
+    assert res.iterations == len(moves) <= 3
+    if res.verdict != "aligned":  # only when the stages really cannot get there
+        assert "repeatability" in res.reason, res.reason
