@@ -34,6 +34,8 @@ def test_simple_acceptance_decides_on_the_measured_value_alone() -> None:
     assert decide(10.1, 0.1, 10.0, "simple").outcome == "does_not_conform"
     assert decide(9.9, 5.0, 10.0, "simple").guard_band_um == 0.0
     assert "no guard band" in decide(9.9, 5.0, 10.0, "simple").text()
+    # a measurement as uncertain as the tolerance itself decides nothing
+    assert decide(2.0, 10.5, 10.0, "simple").outcome == "undecided"
     with pytest.raises(ValueError, match="unknown decision rule 'lenient'"):
         decide(1.0, 1.0, 10.0, "lenient")  # type: ignore[arg-type]
 

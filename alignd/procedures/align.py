@@ -55,6 +55,7 @@ HOLDER_LOOK_FRAMES = 3
 # third-harmonic wobble shifts it by up to 6 um), and every sweep sees the same one. With a
 # map (``alignctl commission``) each sweep is corrected and the floor is measured.
 SOFT_LIMIT_MARGIN_DEG = 0.1
+MAX_CENTRE_JUMPS = 2  # a centre that jumps once may be a bump; twice, something is loose
 
 
 class _Stop(AligndError):
@@ -79,6 +80,7 @@ class _State:
     calibration: Calibration | None = None
     compute_s: float = 0.0
     motion_s: float = 0.0
+    centre_jumps: int = 0  # sweeps whose centre disagreed with the pool (axis cannot move)
 
 
 def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
@@ -244,6 +246,8 @@ class _Run:
             pool=self.pool, floor_um=self.systematic_um, runout=self.runout, plan=self.plan)
         if warning:
             self._warn(warning)
+            if "moved between sweeps" in warning:
+                self.st.centre_jumps += 1
         self.st.compute_s += m.compute_s
         self.st.motion_s += m.timings.get("motion_s", 0.0)
         self.st.last = m
@@ -432,6 +436,12 @@ class _Run:
         while True:
             if prev is not None and ds_prev is not None:
                 cal, extra = self._consistency(cal, prev, m, ds_prev)
+            if self.st.centre_jumps >= MAX_CENTRE_JUMPS:
+                self._record("align", m, **extra, action="stop")
+                raise _Stop("not_converged", f"the centre of rotation moved between sweeps "
+                            f"{self.st.centre_jumps} times: the rotation axis cannot move, so "
+                            "the camera, the turntable mount or the tracking is not stable; "
+                            "no further move made", m)
             if m.sigma_centre_um > self.p.max_center_sigma_um:
                 self._record("align", m, **extra, action="refused")
                 raise _Stop("not_converged", f"centre uncertainty {m.sigma_centre_um:.1f} um "

@@ -10,8 +10,9 @@ least 95 % probability). Two rules (``procedure.decision_rule``):
   is proven when it is at least the tolerance plus U; in between the measurement cannot
   decide (the procedure then measures better or moves, never guesses).
 - ``simple``, simple acceptance (ILAC-G8, ISO/IEC Guide 98-4 with no guard band): within
-  when the measured distance is at most the tolerance, whatever U is. Cheaper, and the
-  risk of a false "within" near the limit is up to 50 %.
+  when the measured distance is at most the tolerance. Cheaper, and the risk of a false
+  "within" near the limit is up to 50 %. A measurement whose U is not below the tolerance
+  itself decides nothing, under either rule.
 """
 
 from __future__ import annotations
@@ -72,6 +73,8 @@ class Decision:
         if self.rule == "guarded":
             zone = (f"guard band {self.guard_band_um:.1f} um (accept up to "
                     f"{self.accept_below_um:.1f} um, reject from {self.reject_above_um:.1f} um)")
+        elif self.U_um >= self.tolerance_um:
+            zone = "no guard band, but U is not below the tolerance"
         else:
             zone = "no guard band (accept up to the tolerance)"
         return (f"{head}: offset {self.offset_um:.1f} um, U {self.U_um:.1f} um (k=2), {zone}; "
@@ -99,7 +102,10 @@ def decide(offset_um: float, U_um: float, tolerance_um: float,
             outcome = "undecided"
     elif rule == "simple":
         g = 0.0
-        outcome = "conforms" if offset_um <= tolerance_um else "does_not_conform"
+        if U_um >= tolerance_um:
+            outcome = "undecided"
+        else:
+            outcome = "conforms" if offset_um <= tolerance_um else "does_not_conform"
     else:
         raise ValueError(f"unknown decision rule {rule!r} (guarded or simple)")
     return Decision(rule, float(tolerance_um), float(offset_um), float(U_um), float(g),
