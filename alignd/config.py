@@ -62,6 +62,9 @@ class ProcedureConfig(Strict):
     stage_repeatability_um: float = Field(1.0, ge=0, description=(
         "1-sigma per-axis landing scatter of the correction stages: no move is made when "
         "it would gain less than this"))
+    target_u_fraction: float = Field(0.5, gt=0, le=1, description=(
+        "an alignment measures better (within max_sweep_deg, max_frames_per_step and "
+        "max_sweeps) before its verdict until U is at most this fraction of the tolerance"))
     decision_rule: Literal["guarded", "simple"] = Field("guarded", description=(
         "guarded: guarded acceptance per ISO 14253-1 (within when offset <= tolerance - U); "
         "simple: simple acceptance (within when offset <= tolerance)"))

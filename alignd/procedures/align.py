@@ -453,6 +453,15 @@ class _Run:
             sweeps_left = self.st.sweeps < self.p.max_sweeps
             helps = gain > rep and moves_left and sweeps_left
             if d.conforms and not helps:
+                if (m.U_um > self.p.target_u_fraction * self.tol and sweeps_left
+                        and self._better_plan() is not None):
+                    what = self._measure_better()
+                    self._record("align", m, **extra, action="measure better", next=what)
+                    self._emit("sweep", f"within, but U {m.U_um:.1f} um is above "
+                               f"{self.p.target_u_fraction:g} of the tolerance; {what}", m=m)
+                    prev, ds_prev, extra = None, None, {}
+                    m = self._measure("align")
+                    continue
                 self._record("align", m, **extra, action="done")
                 return ("aligned", f"{d.text()}; {self._tally()}", m)
             if not helps:
