@@ -309,12 +309,23 @@ def test_the_runout_map_takes_the_bearing_out_of_the_offset() -> None:
     rig, world = scene_rig(cfg, 2)
     tools = standin_tools(2, sigma_px=0.001)  # little noise: the bias shows
     runout = commissioned(rig, cfg, 2)
+    # the map is the bearing's, though the camera looks 0.5 deg off the axis (perspective
+    # is taken out first) and the encoder has a periodic error
+    bearing = np.array([world.wobble_mm(a) for a in runout.angles_deg])
+    assert np.abs(runout.offset_mm - bearing).max() * 1000 < 0.6
+    # the sample near the axis, where a verdict is made (the stage directions from the
+    # simulator: set-up only, the measurement does not see them)
+    dirs = world.stage_directions()
+    ds = -np.linalg.solve(np.column_stack([dirs["x"], dirs["y"]]),
+                          np.asarray(world.truth()["offset_um"]) / 1000.0)
+    for role, v in zip(("x", "y"), ds, strict=True):
+        rig.axis(role).move_to(rig.axis(role).position() + float(v))
     errors = {}
     for name, rmap in (("raw", None), ("corrected", runout)):
         _, m, _ = measure(rig, cfg, tools, kind="check", iteration=1, abort=None,
                           progress=lambda _ev: None, recorder=NullRecorder(),
                           pixel_size_um=160.0, runout=rmap)
         errors[name] = float(np.hypot(*(m.offset_um - np.asarray(world.truth()["offset_um"]))))
-        floor = m.budget.get("residual error motion")
+        U = m.U_um
     assert errors["raw"] > 4.0, errors
-    assert errors["corrected"] < floor < 2.5, (errors, floor)
+    assert errors["corrected"] < U < 2.5, (errors, U)  # U with the map's measured floor
