@@ -574,6 +574,50 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
         excess_um=excess_um)
 
 
+def map_floor_cov(runout: RunoutMap, data: SweepData, centre: Any, holder: HolderConfig,
+                  pixel_size_mm: float, harmonics: tuple[int, ...] = (2, 3, 4, 5),
+                  method: str = "rigid") -> np.ndarray:
+    """The offset's covariance (um^2) from the runout map's own uncertainty, propagated
+    through this sweep.
+
+    Why not just the map's per-point scatter: over +-10 deg a translation that changes
+    linearly with the angle is read as a rotation about a shifted centre, so a map error's
+    *slope* in the swept range moves the centre about 1/(half-width in rad) times as much
+    (six times for 10 deg). The map's coefficients (harmonics, with the rigid terms they
+    trade with on a partial turn) have covariance s^2 (A'A)^-1 with s its per-point scatter;
+    each coefficient's effect on this sweep's offset comes from re-fitting the sweep with
+    that harmonic added (the solver is close to linear in so small a change); G Cov G' is
+    the result.
+    """
+    from alignd.procedures.runout import _harmonic_columns, _rigid_columns
+    from alignd.solve import Sweep, solve_centre
+
+    am = np.radians(runout.angles_deg)
+    n = len(am)
+    hs = tuple(k for k in harmonics if k >= 2)
+    while hs and 4 + 4 * len(hs) > n:
+        hs = hs[:-1]
+    if not hs:
+        return np.zeros((2, 2))
+    A = np.hstack([_rigid_columns(am, 1), _harmonic_columns(am, hs)])
+    s_mm = runout.residual_um / 1000.0
+    cov_coef = s_mm**2 * np.linalg.pinv(A.T @ A)[4:, 4:]
+    ang = np.asarray(data.readback_deg, float)
+    basis = _harmonic_columns(np.radians(ang), hs)  # (2F, 4K): x rows, y rows interleaved
+
+    def offset(points: np.ndarray) -> np.ndarray:
+        res = solve_centre(Sweep(ang, points, None), method=method)
+        return measure_offset(dataclasses.replace(data, points=points), res, holder).offset_um
+
+    base = offset(data.points)
+    step_mm = 0.001  # 1 um of the harmonic: the fit is linear in it
+    G = np.zeros((2, basis.shape[1]))
+    for j in range(basis.shape[1]):
+        d = basis[:, j].reshape(-1, 2) * step_mm / pixel_size_mm  # (F, 2) px per frame
+        G[:, j] = (offset(data.points + d[:, None, :]) - base) / step_mm
+    return G @ cov_coef @ G.T
+
+
 def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: int,
             abort: threading.Event | None, progress: ProgressCallback,
             recorder: RunRecorder, pixel_size_um: float | None,
@@ -639,6 +683,15 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
                        + ("; re-run alignctl commission to refresh the map"
                           if runout is not None else ""))
     floor = runout_floor(runout, floor_um)
+    if runout is not None:
+        try:
+            cov_map = map_floor_cov(runout, rect, used, cfg.holder, 1.0 / scale)
+            u_axis = math.sqrt(max(float(np.trace(cov_map)) / 2.0, 0.0))
+            floor = Floor(u_axis, f"runout map ({runout.residual_um:.2f} um per point over "
+                          f"{len(runout.angles_deg)} angles) propagated through this sweep",
+                          "A")
+        except (SolveError, ValueError, np.linalg.LinAlgError) as exc:
+            log.warning("runout map uncertainty not propagated (%s); using its scatter", exc)
     m = measure_offset(rect, used, cfg.holder, floor)
     m.n_sweeps = int(getattr(used, "n_sweeps", 1))
     m.sweep_centre_px = np.asarray(centre.center_px, float)
