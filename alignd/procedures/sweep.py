@@ -576,7 +576,7 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
 
 def map_floor_cov(runout: RunoutMap, data: SweepData, centre: Any, holder: HolderConfig,
                   pixel_size_mm: float, harmonics: tuple[int, ...] = (2, 3, 4, 5),
-                  method: str = "rigid") -> np.ndarray:
+                  method: str = "rigid-known") -> np.ndarray:
     """The offset's covariance (um^2) from the runout map's own uncertainty, propagated
     through this sweep.
 
@@ -586,8 +586,8 @@ def map_floor_cov(runout: RunoutMap, data: SweepData, centre: Any, holder: Holde
     (six times for 10 deg). The map's coefficients (harmonics, with the rigid terms they
     trade with on a partial turn) have covariance s^2 (A'A)^-1 with s its per-point scatter;
     each coefficient's effect on this sweep's offset comes from re-fitting the sweep with
-    that harmonic added (the solver is close to linear in so small a change); G Cov G' is
-    the result.
+    that harmonic added (``rigid-known``: linear and fast; the free-angle fit responds the
+    same to a common translation); G Cov G' is the result.
     """
     from alignd.procedures.runout import _harmonic_columns, _rigid_columns
     from alignd.solve import Sweep, solve_centre
