@@ -51,14 +51,31 @@ class ProcedureConfig(Strict):
     sweep_deg: float = Field(10.0, gt=0, le=45, description="sweep from -sweep_deg to +sweep_deg")
     sweep_steps: int = Field(21, ge=3, le=721)
     tolerance_um: float = Field(10.0, gt=0)
-    max_iterations: int = Field(4, ge=1, le=50)
+    max_iterations: int = Field(4, ge=1, le=50, description=(
+        "the most correction moves one alignment makes"))
+    max_sweeps: int = Field(8, ge=1, le=50, description=(
+        "the most measurement sweeps one run makes (align or check)"))
     max_step_mm: float = Field(5.0, gt=0)
     max_center_sigma_um: float = Field(20.0, gt=0)
     calibration_step_mm: float = Field(0.5, gt=0)
     frames_per_step: int = Field(1, ge=1, le=50, description="frames averaged per sweep step")
+    max_frames_per_step: int = Field(4, ge=1, le=50, description=(
+        "the most frames per step a run averages when it must measure better to decide"))
+    max_sweep_deg: float | None = Field(25.0, gt=0, le=180, description=(
+        "the widest sweep (half-width, deg) a run widens to when it must measure better to "
+        "decide; also kept inside the turntable's soft limits; null: sweep_deg only"))
     systematic_um: float = Field(3.0, ge=0, description=(
-        "per-axis systematic standard uncertainty of the offset (bearing error motion, "
-        "scale), added to the statistical part"))
+        "per-axis error-motion floor assumed when no runout map is available (with a map "
+        "the floor is the map's uncertainty plus the scatter between repeated sweeps)"))
+    stage_repeatability_um: float = Field(1.0, ge=0, description=(
+        "1-sigma per-axis landing scatter of the correction stages: no move is made when "
+        "it would gain less than this"))
+    target_u_fraction: float = Field(0.5, gt=0, le=1, description=(
+        "an alignment measures better (within max_sweep_deg, max_frames_per_step and "
+        "max_sweeps) before its verdict until U is at most this fraction of the tolerance"))
+    decision_rule: Literal["guarded", "simple"] = Field("guarded", description=(
+        "guarded: guarded acceptance per ISO 14253-1 (within when offset <= tolerance - U); "
+        "simple: simple acceptance (within when offset <= tolerance)"))
     correction_axes: tuple[str, str] = ("x", "y")
     pixel_size_tolerance: float = Field(0.15, gt=0, lt=1,
                                         description="accepted calibration/config disagreement")
@@ -71,6 +88,16 @@ class ProcedureConfig(Strict):
             raise ValueError(f"names {axes[0]!r} twice; the correction needs two different "
                              "linear axes, e.g. [x, y]")
         return axes
+
+    @model_validator(mode="after")
+    def _sweeps(self) -> ProcedureConfig:
+        if self.max_sweep_deg is not None and self.max_sweep_deg < self.sweep_deg:
+            raise ValueError(f"max_sweep_deg {self.max_sweep_deg:g} is narrower than sweep_deg "
+                             f"{self.sweep_deg:g}")
+        if self.max_frames_per_step < self.frames_per_step:
+            raise ValueError(f"max_frames_per_step {self.max_frames_per_step} is below "
+                             f"frames_per_step {self.frames_per_step}")
+        return self
 
 
 class DaemonConfig(Strict):

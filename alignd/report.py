@@ -553,27 +553,11 @@ def draw_convergence(run: dict[str, Any], width: int = WIDTH - PLOT_H, height: i
 
 
 def report_notes(run: dict[str, Any]) -> list[str]:
-    """The text block's lines: the verdict's reason, then (when the record has them) the
-    decision rule and the uncertainty budget."""
+    """The text block's lines: the verdict's reason (the decision rule and the uncertainty
+    budget have their own panel, ``draw_verdict``)."""
     result = run.get("result") or {}
-    lines = []
     reason = run.get("reason") or result.get("reason")
-    if reason:
-        lines.append(f"verdict: {run.get('verdict') or result.get('verdict')}: {reason}")
-    rule = result.get("decision_rule")
-    if isinstance(rule, str) and rule:
-        lines.append(f"decision rule: {rule}")
-    budget = result.get("budget")
-    if isinstance(budget, list) and budget:
-        parts = []
-        for row in budget:
-            if isinstance(row, dict) and row.get("name") is not None:
-                v = row.get("u_um", row.get("value"))
-                parts.append(f"{row['name']} {v:.2g}" if isinstance(v, (int, float))
-                             else str(row["name"]))
-        if parts:
-            lines.append("uncertainty budget (u, um): " + ", ".join(parts))
-    return lines
+    return [f"verdict: {run.get('verdict') or result.get('verdict')}: {reason}"] if reason else []
 
 
 def _wrap(text: str, width_px: int, size: float) -> list[str]:
@@ -616,7 +600,11 @@ def draw_header(run: dict[str, Any], width: int = WIDTH) -> np.ndarray:
         bits.append(f"offset {result['offset_norm_um']:.1f}"
                     + (f" +/- {u:.1f}" if u is not None else "") + " um (k=2)")
     if result.get("iterations") is not None:
-        bits.append(f"{result['iterations']} iterations")
+        moves = int(result["iterations"])
+        sweeps = result.get("sweeps")
+        bits.append(f"{moves} move{'s' if moves != 1 else ''}"
+                    + (f", {sweeps} sweep{'s' if sweeps != 1 else ''}"
+                       if sweeps is not None else ""))
     bits.append(f"started {str(run.get('started_at', ''))[:19].replace('T', ' ')} UTC by "
                 f"{run.get('user') or '?'}/{run.get('started_by')}")
     bits.append(f"alignd {run.get('software_version', '?')}, config "
@@ -627,10 +615,101 @@ def draw_header(run: dict[str, Any], width: int = WIDTH) -> np.ndarray:
     return img
 
 
+VERDICT_H = 250
+ZONE_COLOURS = {"accept": (120, 200, 120), "undecided": (80, 200, 240),
+                "reject": (120, 120, 230)}
+
+
+def _wrap_chars(text: str, width_chars: int) -> list[str]:
+    lines, cur = [], ""
+    for word in text.split(" "):
+        if cur and len(cur) + 1 + len(word) > width_chars:
+            lines.append(cur)
+            cur = word
+        else:
+            cur = f"{cur} {word}" if cur else word
+    return [*lines, cur] if cur else lines
+
+
+def draw_verdict(run: dict[str, Any], width: int = WIDTH, height: int = VERDICT_H
+                 ) -> np.ndarray:
+    """The decision rule and the uncertainty budget: the zones of the rule on a distance
+    axis (acceptance, undecided, rejection) with the measured offset and its U, the
+    operator's line, and the budget table (standard uncertainties, combined, U at k=2)."""
+    img = np.full((height, width, 3), 255, np.uint8)
+    result = run.get("result") or {}
+    dec = result.get("decision")
+    budget = result.get("budget")
+    black = (0, 0, 0)
+    if not isinstance(dec, dict):
+        cv2.putText(img, "no decision recorded (run ended before a measurement)", (10, 30),
+                    FONT, 0.5, (80, 80, 80), 1, cv2.LINE_AA)
+        return img
+    tol = float(dec["tolerance_um"])
+    off = float(dec["offset_um"])
+    u = float(dec["U_um"])
+    lo_acc = float(dec["accept_below_um"])
+    hi_rej = float(dec["reject_above_um"])
+    cv2.putText(img, "decision: " + str(dec.get("rule_name", dec.get("rule"))), (10, 20), FONT,
+                0.5, black, 1, cv2.LINE_AA)
+    # the zones on a distance axis from 0 to beyond the rejection limit and the measurement
+    x0, x1, yb = 20, width - 20, 60
+    top = max(hi_rej, off + u, tol) * 1.15
+
+    def px(v: float) -> int:
+        return round(x0 + max(min(v, top), 0.0) / top * (x1 - x0))
+
+    zones = [(0.0, max(lo_acc, 0.0), "accept"), (max(lo_acc, 0.0), hi_rej, "undecided"),
+             (hi_rej, top, "reject")]
+    for a, b, name in zones:
+        if b > a:
+            cv2.rectangle(img, (px(a), yb - 14), (px(b), yb + 14), ZONE_COLOURS[name], -1)
+            if px(b) - px(a) > 90:
+                cv2.putText(img, {"accept": "within (accept)", "undecided": "cannot decide",
+                                  "reject": "beyond (reject)"}[name],
+                            (px(a) + 6, yb + 5), FONT, 0.45, black, 1, cv2.LINE_AA)
+    cv2.line(img, (px(tol), yb - 22), (px(tol), yb + 22), black, 2)
+    cv2.putText(img, f"tolerance {tol:g} um", (px(tol) - 60, yb - 26), FONT, 0.45, black, 1,
+                cv2.LINE_AA)
+    if dec.get("rule") == "guarded":
+        cv2.putText(img, f"guard band U = {float(dec['guard_band_um']):.1f} um",
+                    (px(max(lo_acc, 0.0)), yb + 32), FONT, 0.4, (60, 60, 60), 1, cv2.LINE_AA)
+    ym = yb + 48
+    cv2.line(img, (px(off - u), ym), (px(off + u), ym), (200, 80, 0), 2)
+    for v in (off - u, off + u):
+        cv2.line(img, (px(v), ym - 6), (px(v), ym + 6), (200, 80, 0), 2)
+    cv2.circle(img, (px(off), ym), 6, (0, 0, 200), -1, cv2.LINE_AA)
+    cv2.putText(img, f"measured {off:.1f} um, U {u:.1f} um (k=2)", (px(off) + 10, ym + 18),
+                FONT, 0.45, black, 1, cv2.LINE_AA)
+    y = ym + 40
+    for line in _wrap_chars(str(dec.get("text", "")), 110)[:2]:
+        cv2.putText(img, line, (10, y), FONT, 0.42, black, 1, cv2.LINE_AA)
+        y += 17
+    cv2.putText(img, "offset: the target's distance from the mean axis of rotation (the axis "
+                "averaged over a turn)", (10, y), FONT, 0.42, (60, 60, 60), 1, cv2.LINE_AA)
+    y += 20
+    if isinstance(budget, dict):
+        rows = [(str(c["name"]), float(c["u_um"] or 0.0), str(c.get("type", "")))
+                for c in budget.get("contributions", [])]
+        cv2.putText(img, "uncertainty budget (standard uncertainty, um, both axes)", (10, y),
+                    FONT, 0.45, black, 1, cv2.LINE_AA)
+        y += 4
+        col_w = (width - 20) // 4
+        items = [*(f"{n} {v:.2f} ({t})" for n, v, t in rows),
+                 f"combined {float(budget['combined_um']):.2f}",
+                 f"U (k={float(budget['k']):g}) {float(budget['U_um']):.2f}"]
+        for i, text in enumerate(items):
+            cx, cy = 10 + (i % 4) * col_w, y + 17 * (1 + i // 4)
+            cv2.putText(img, text, (cx, cy), FONT, 0.42, black, 1, cv2.LINE_AA)
+    return img
+
+
 def render_report(run: dict[str, Any], image: np.ndarray | None) -> np.ndarray:
-    """The report image (BGR): header, top view, zoom beside the convergence plot, notes."""
+    """The report image (BGR): header, top view, the decision and its budget, the zoom
+    beside the convergence plot, notes."""
     lower = np.hstack([draw_zoom(run), draw_convergence(run)])
-    return np.vstack([draw_header(run), draw_top_view(run, image), lower, draw_notes(run)])
+    return np.vstack([draw_header(run), draw_top_view(run, image), draw_verdict(run), lower,
+                      draw_notes(run)])
 
 
 def write_report(run: dict[str, Any], out_dir: Path, image: np.ndarray | None

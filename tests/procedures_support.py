@@ -11,6 +11,8 @@ import numpy as np
 from alignd import solve as solver
 from alignd.config import AligndConfig, load_config
 from alignd.procedures import Rig, Tools
+from alignd.procedures.runout import RunoutMap
+from alignd.procedures.sweep import sweep_runout
 from alignd.procedures.tools import Corners, as_corners
 from drivers.camera import Frame
 from drivers.sim.direct import build_direct_rig, scene_tracker
@@ -28,6 +30,27 @@ def sim_config(**procedure: Any) -> AligndConfig:
 
 def scene_rig(cfg: AligndConfig, seed: int, **kw: Any) -> tuple[Rig, World]:
     return build_direct_rig(cfg, seed, camera_kind="scene", **kw)
+
+
+def full_turn_config(**procedure: Any) -> AligndConfig:
+    """The reference config with the turntable free to its cable wrap (+-169 deg), for a
+    runout map over nearly a full turn."""
+    cfg = sim_config(**procedure)
+    ctls = []
+    for c in cfg.controllers:
+        axes = [a.model_copy(update={"soft_limits": a.soft_limits.model_copy(
+            update={"min": -169.0, "max": 169.0})}) if a.role == "turntable" else a
+            for a in c.axes]
+        ctls.append(c.model_copy(update={"axes": axes}))
+    return cfg.model_copy(update={"controllers": ctls})
+
+
+def commissioned(rig: Rig, cfg: AligndConfig, seed: int) -> RunoutMap:
+    """The rig's runout map from a full-turn sweep (what commissioning measures)."""
+    rig.connect()
+    return sweep_runout(rig, cfg, standin_tools(seed + 500, sigma_px=0.005), half_deg=165.0,
+                        step_deg=10.0,
+                        frames_per_step=4)
 
 
 def standin_tools(seed: int, sigma_px: float = 0.01, track: Any = None) -> Tools:

@@ -62,7 +62,7 @@ def test_status_shows_positions_with_units_homed_state_and_cameras() -> None:
     x = next(ln for ln in lines if ln.strip().startswith("x "))
     assert "position not read yet" in x and "homed ?" in x and "s/n 91302 fw 7.38" in x
     assert "dashboard: http://127.0.0.1:8080/ (read-only)" in text
-    assert "top        state ok, fps 4.0" in text
+    assert "camera top    ok          source ? (fps 4.0)" in text
 
 
 def test_the_outcome_is_printed_once() -> None:

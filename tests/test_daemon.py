@@ -327,8 +327,8 @@ def test_cli_report_writes_png_and_json(capsys: pytest.CaptureFixture, tmp: Path
         assert ctl(env.sock, "report", str(run_id), "--out", str(tmp / "rep"), "--json") == 0
         paths = json.loads(capsys.readouterr().out)
         img = cv2.imread(paths["png"])
-        assert img.shape == (report.HEADER_H + 540 + report.PLOT_H + report.NOTES_H,
-                             report.WIDTH, 3)
+        assert img.shape == (report.HEADER_H + 540 + report.VERDICT_H + report.PLOT_H
+                             + report.NOTES_H, report.WIDTH, 3)
         rec = json.loads(Path(paths["json"]).read_text())
         assert rec["id"] == run_id and rec["result"]["verdict"] == "aligned"
         assert len(rec["sweeps"]) == 2
@@ -444,7 +444,7 @@ def test_report_files_are_wholly_old_or_new_after_sigkill(tmp: Path) -> None:
 
 def test_report_without_frame_or_iterations_still_renders() -> None:
     img = report.render_report({"id": 3, "kind": "check", "status": "interrupted"}, None)
-    assert img.shape == (report.HEADER_H + 540 + report.PLOT_H + report.NOTES_H,
+    assert img.shape == (report.HEADER_H + 540 + report.VERDICT_H + report.PLOT_H + report.NOTES_H,
                          report.WIDTH, 3)
     assert np.isfinite(img).all()
 

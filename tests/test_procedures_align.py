@@ -8,26 +8,34 @@ import threading
 
 import numpy as np
 import pytest
-from procedures_support import commanded, scene_rig, sim_config, standin_tools
+from procedures_support import (
+    commanded,
+    commissioned,
+    full_turn_config,
+    scene_rig,
+    sim_config,
+    standin_tools,
+)
 
 from alignd.procedures import MemoryRecorder, ProgressEvent, run_alignment, run_check
 from alignd.procedures.tools import Corners
 from alignd.solve import parse_sweep
 
 TRANSLATIONS = ("x", "y", "z", "translator")
-CONTRACT_KEYS = {"run_id", "verdict", "offset_um", "offset_norm_um", "U_um", "iterations",
-                 "tilt_deg", "yaw_deg", "reason"}
+CONTRACT_KEYS = {"run_id", "verdict", "offset_um", "offset_norm_um", "U_um", "iterations", "sweeps",
+                 "tilt_deg", "yaw_deg", "reason", "decision", "budget"}
 
 
 @pytest.mark.parametrize("seed", [1, 7, 23])
 def test_alignment_converges_to_the_true_axis(seed: int) -> None:
-    cfg = sim_config()
+    cfg = full_turn_config(decision_rule="guarded")
     rig, world = scene_rig(cfg, seed)
     start = world.truth()["offset_norm_um"]
+    runout = commissioned(rig, cfg, seed)
     rec = MemoryRecorder()
     events: list[ProgressEvent] = []
     res = run_alignment(rig, cfg, tools=standin_tools(seed), recorder=rec,
-                        progress=events.append, abort=threading.Event())
+                        progress=events.append, abort=threading.Event(), runout=runout)
     out = res.to_json()
     assert start > 1000  # a few mm of initial misalignment
     assert out["verdict"] == "aligned", out["reason"]
@@ -37,13 +45,21 @@ def test_alignment_converges_to_the_true_axis(seed: int) -> None:
     # the reported offset agrees with the simulator's within its expanded uncertainty
     err = math.hypot(out["offset_um"][0] - truth[0], out["offset_um"][1] - truth[1])
     assert err <= out["U_um"]
-    assert 1 <= out["iterations"] <= cfg.procedure.max_iterations
+    assert 1 <= out["iterations"] <= 3  # correction moves
+    assert out["sweeps"] == out["iterations"] + 1  # one sweep per move plus the verdict's
+    assert out["U_um"] <= 5.0
+    assert out["decision"]["outcome"] == "conforms" and out["decision"]["rule"] == "guarded"
+    assert out["offset_norm_um"] <= 10.0 - out["U_um"]
+    names = [c["name"] for c in out["budget"]["contributions"]]
+    assert names == ["centre fit", "target point", "pixel scale", "residual error motion",
+                     "stage repeatability"]
+    assert out["budget"]["U_um"] == pytest.approx(out["U_um"], abs=0.002)
     assert out["yaw_deg"] == pytest.approx(world.yaw_deg, abs=0.05)
     assert out["tilt_deg"] == pytest.approx(world.cfg.tilt_deg, abs=1e-6)
     assert res.exit_code == 0
     # raw data: contract sweep files, one record per iteration, progress with offsets
     kinds = [s.kind for s in rec.sweeps]
-    assert kinds[0] == "calibration" and kinds[-1] == "verify"
+    assert kinds[0] == "calibration" and kinds[-1] == "align"
     for s in rec.sweeps[1:]:
         sw = parse_sweep(s.sweep_json)
         assert sw.n_frames == cfg.procedure.sweep_steps and sw.n_features == 4
@@ -215,3 +231,101 @@ def test_homes_unreferenced_axes_and_parks_them_mid_travel() -> None:
     assert all(ax.homed for ax in sims.values())
     assert commanded(rig, "z")[0] == pytest.approx(25.0)  # middle of its soft limits
     assert res.verdict == "aligned", res.reason
+
+
+def test_check_answers_from_one_sweep_and_counts_no_moves() -> None:
+    cfg = full_turn_config(decision_rule="guarded")
+    rig, world = scene_rig(cfg, 3)
+    runout = commissioned(rig, cfg, 3)
+    assert run_alignment(rig, cfg, tools=standin_tools(3), runout=runout).verdict == "aligned"
+    res = run_check(rig, cfg, tools=standin_tools(4, sigma_px=0.005), runout=runout)
+    out = res.to_json()
+    assert out["verdict"] == "within_tolerance", out["reason"]
+    assert out["iterations"] == 0 and out["sweeps"] == 1  # a check makes no move
+    assert out["reason"].startswith(f"within 10 um: offset {out['offset_norm_um']:.1f} um, U ")
+    assert "0 moves, 1 sweep" in out["reason"]
+    assert out["decision"]["accept_below_um"] == pytest.approx(10.0 - out["U_um"], abs=0.002)
+    truth = world.truth()["offset_um"]
+    assert math.hypot(out["offset_um"][0] - truth[0], out["offset_um"][1] - truth[1]) \
+        <= out["U_um"]
+
+
+def test_an_undecided_check_measures_better_before_answering() -> None:
+    # the sample 5.5 um off the axis: one +-10 deg sweep (U about 5.5 um) cannot decide,
+    # a better measurement can (the map's floor alone is about 3 um)
+    cfg = full_turn_config(decision_rule="guarded")
+    rig, world = scene_rig(cfg, 5)
+    runout = commissioned(rig, cfg, 5)
+    assert run_alignment(rig, cfg, tools=standin_tools(5), runout=runout).verdict == "aligned"
+    tr = np.asarray(world.truth()["offset_um"], float)
+    d = world.stage_directions()["x"]
+    want = 5.5
+    # move x by s so that |tr + s d| = want (the root of a quadratic in s)
+    b, c = float(tr @ d), float(tr @ tr) - want**2
+    s_um = -b + math.sqrt(b * b - c)
+    x = rig.axis("x")
+    x.move_to(x.position() + s_um / 1000.0)
+    before = {r: len(commanded(rig, r)) for r in TRANSLATIONS}
+    rec = MemoryRecorder()
+    res = run_check(rig, cfg, tools=standin_tools(6), runout=runout, recorder=rec)
+    records = [r for _, r in rec.iterations]
+    assert records[0]["action"] == "measure better", records[0]["decision"]["text"]
+    assert records[0]["next"] == "widening the sweep to +-20 deg"
+    assert records[1]["plan"]["half_deg"] == 20.0
+    assert res.sweeps >= 2 and res.iterations == 0
+    # later sweeps pool the centre: the uncertainty falls
+    assert records[-1]["U_um"] < records[0]["U_um"]
+    assert res.verdict == "within_tolerance", res.reason
+    assert {r: len(commanded(rig, r)) for r in TRANSLATIONS} == before
+
+
+@pytest.mark.parametrize("repeatability_um", [1.0, 4.0])
+def test_no_move_gains_less_than_the_stages_repeatability(repeatability_um: float) -> None:
+    cfg = full_turn_config(decision_rule="guarded", stage_repeatability_um=repeatability_um)
+    rig, _ = scene_rig(cfg, 7)
+    runout = commissioned(rig, cfg, 7)
+    rec = MemoryRecorder()
+    res = run_alignment(rig, cfg, tools=standin_tools(7), runout=runout, recorder=rec)
+    records = [r for _, r in rec.iterations]
+    moves = [r for r in records if r["action"] == "move"]
+    assert moves and all(r["gain_um"] > repeatability_um for r in moves)
+    assert records[-1]["action"] in ("done", "stop")
+    assert records[-1]["gain_um"] <= repeatability_um
+    assert res.iterations == len(moves) <= 3
+    if res.verdict != "aligned":  # only when the stages really cannot get there
+        assert "repeatability" in res.reason, res.reason
+
+
+def test_the_runout_map_takes_the_bearing_out_of_the_offset() -> None:
+    """A 3 um bearing biases an uncorrected +-10 deg sweep by several um; corrected by the
+    commissioning map, what is left is within the budget's residual error motion."""
+    from alignd.procedures.recorder import NullRecorder
+    from alignd.procedures.sweep import measure
+
+    cfg = full_turn_config()
+    world_cfg = cfg.sim.world.model_copy(update={"wobble_um": 3.0})  # type: ignore[union-attr]
+    cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(  # type: ignore[union-attr]
+        update={"world": world_cfg})})
+    rig, world = scene_rig(cfg, 2)
+    tools = standin_tools(2, sigma_px=0.001)  # little noise: the bias shows
+    runout = commissioned(rig, cfg, 2)
+    # the map is the bearing's, though the camera looks 0.5 deg off the axis (perspective
+    # is taken out first) and the encoder has a periodic error
+    bearing = np.array([world.wobble_mm(a) for a in runout.angles_deg])
+    assert np.abs(runout.offset_mm - bearing).max() * 1000 < 0.6
+    # the sample near the axis, where a verdict is made (the stage directions from the
+    # simulator: set-up only, the measurement does not see them)
+    dirs = world.stage_directions()
+    ds = -np.linalg.solve(np.column_stack([dirs["x"], dirs["y"]]),
+                          np.asarray(world.truth()["offset_um"]) / 1000.0)
+    for role, v in zip(("x", "y"), ds, strict=True):
+        rig.axis(role).move_to(rig.axis(role).position() + float(v))
+    errors = {}
+    for name, rmap in (("raw", None), ("corrected", runout)):
+        _, m, _ = measure(rig, cfg, tools, kind="check", iteration=1, abort=None,
+                          progress=lambda _ev: None, recorder=NullRecorder(),
+                          pixel_size_um=160.0, runout=rmap)
+        errors[name] = float(np.hypot(*(m.offset_um - np.asarray(world.truth()["offset_um"]))))
+        U = m.U_um
+    assert errors["raw"] > 4.0, errors
+    assert errors["corrected"] < U < 2.5, (errors, U)  # U with the map's measured floor

@@ -90,15 +90,23 @@ def test_convergence_labels_do_not_collide_for_a_repeated_iteration() -> None:
     assert img.shape == (report.PLOT_H, report.WIDTH - report.PLOT_H, 3)
 
 
-def test_text_block_carries_the_decision_rule_and_budget() -> None:
+def test_report_carries_the_decision_rule_budget_and_reason() -> None:
     run = _run([(1.0, 0.0)])
-    run["result"].update(decision_rule="accept when |offset| + U <= tolerance",
-                         budget=[{"name": "centre", "u_um": 1.2}, {"name": "scale", "u_um": 0.3}])
-    lines = report.report_notes(run)
-    assert lines[0] == "verdict: aligned: ok"
-    assert lines[1] == "decision rule: accept when |offset| + U <= tolerance"
-    assert lines[2] == "uncertainty budget (u, um): centre 1.2, scale 0.3"
+    run["result"].update(
+        decision={"rule": "guarded", "rule_name": "guarded acceptance (ISO 14253-1)",
+                  "tolerance_um": 10.0, "offset_um": 1.0, "U_um": 3.0, "guard_band_um": 3.0,
+                  "accept_below_um": 7.0, "reject_above_um": 13.0,
+                  "text": "within 10 um: offset 1.0 um, U 3.0 um"},
+        budget={"contributions": [{"name": "centre fit", "u_um": 1.2, "type": "A"},
+                                  {"name": "pixel scale", "u_um": 0.3, "type": "B"}],
+                "combined_um": 1.24, "k": 2.0, "U_um": 2.48})
+    assert report.report_notes(run) == ["verdict: aligned: ok"]
+    panel = report.draw_verdict(run)
+    empty = report.draw_verdict({"result": {}})
+    assert panel.shape == empty.shape == (report.VERDICT_H, report.WIDTH, 3)
+    assert (panel != empty).any()  # the zones, the measurement and the budget are drawn
     img = report.render_report(run, np.full((720, 1280), 128, np.uint8))
-    assert img.shape == (report.HEADER_H + 540 + report.PLOT_H + report.NOTES_H, report.WIDTH, 3)
+    assert img.shape == (report.HEADER_H + 540 + report.VERDICT_H + report.PLOT_H
+                         + report.NOTES_H, report.WIDTH, 3)
     notes = img[-report.NOTES_H:]
     assert (notes < 100).any()  # the text is there

@@ -125,8 +125,12 @@ def status_text(st: dict[str, Any]) -> str:
             size = cam.get("size")
             what = f"{size[0]}x{size[1]}" if cam.get("state") == "ok" and size else \
                 (cam.get("error") or "")
+            extra = ", ".join(f"{k} {v}" for k, v in cam.items()
+                              if k not in ("state", "source", "size", "error")
+                              and v is not None and not isinstance(v, (dict, list)))
             lines.append(f"  camera {role:6s} {cam.get('state', '?'):11s} source "
-                         f"{cam.get('source', '?')}" + (f": {what}" if what else ""))
+                         f"{cam.get('source', '?')}" + (f": {what}" if what else "")
+                         + (f" ({extra})" if extra else ""))
     for warning in st.get("warnings") or []:
         lines.append(f"  warning: {warning}")
     return "\n".join(lines)
@@ -173,7 +177,19 @@ def result_text(result: dict[str, Any]) -> str:
     if result.get("offset_um") is not None:
         x, y = result["offset_um"]
         lines.append(f"  offset     {_fmt_offset(result)} (k = 2)  [x {x:.1f}, y {y:.1f} um]")
-    lines.append(f"  iterations {result.get('iterations')}")
+    moves = f"  moves      {result.get('iterations')}"
+    if result.get("sweeps") is not None:
+        moves += f", {result['sweeps']} sweep(s)"
+    lines.append(moves)
+    budget = result.get("budget")
+    if isinstance(budget, dict):
+        parts = ", ".join(f"{c['name']} {c['u_um']:.2f}" for c in budget.get("contributions", [])
+                          if c.get("u_um") is not None)
+        lines.append(f"  budget     u (um): {parts}; combined {budget['combined_um']:.2f}, "
+                     f"U (k={budget['k']:g}) {budget['U_um']:.2f}")
+    decision = result.get("decision")
+    if isinstance(decision, dict):
+        lines.append(f"  rule       {decision.get('rule_name')}")
     for key, label in (("tilt_deg", "tilt"), ("yaw_deg", "yaw")):
         if result.get(key) is not None:
             lines.append(f"  {label:10s} {result[key]:.3f} deg")

@@ -1,11 +1,18 @@
 """The closed loop: measure the target's offset from the rotation axis, move, repeat, verify.
 
 ``run_alignment``: connect, identify and home; pre-checks (top-camera eccentricity,
-side-camera tilt); calibrate the stage-to-image mapping; then iterate: sweep -> centre with
-covariance -> target offset with uncertainty -> stage moves in the rotating frame (clamped
-to the maximum step and the soft limits) -> move, until the offset plus its expanded
-uncertainty is within the tolerance; then a separate verification sweep decides the
-verdict. ``run_check`` makes the same measurement without moving any translation stage.
+side-camera tilt); calibrate the stage-to-image mapping; then iterate: sweep (corrected for
+the turntable's error motion when a runout map is given) -> centre pooled over the run's
+sweeps -> target offset from the mean axis with its uncertainty budget -> the decision rule
+(``procedure.decision_rule``) -> either a verdict, a better measurement (wider sweep, more
+frames per step) when the measurement cannot decide and a move cannot help, or a stage move
+in the rotating frame (clamped to the maximum step and the soft limits). No move is made
+when it would gain less than the stages' repeatability. The sweep after the last move is
+the verdict's measurement. ``run_check`` measures without moving any translation stage and
+answers from the first sweep that decides.
+
+``iterations`` in the result counts correction moves (0 for a check); ``sweeps`` counts
+measurements.
 
 Nothing moves on data that failed a check (tracking lost, centre too uncertain); an abort
 or a device error stops every axis. The simulator's truth is read only after the run.
@@ -26,11 +33,13 @@ import numpy as np
 from alignd.config import AligndConfig
 from alignd.errors import AligndError, ConfigError, DeviceError, StateError, VisionError
 from alignd.procedures.calibrate import Calibration, calibrate, configured_pixel_size_um
+from alignd.procedures.decision import Decision, decide
 from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progress
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.result import RunResult
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
-from alignd.procedures.sweep import CentrePool, Measurement, grab_fresh, measure
+from alignd.procedures.runout import RunoutMap
+from alignd.procedures.sweep import CentrePool, Measurement, SweepPlan, grab_fresh, measure
 from alignd.procedures.tools import Tools, default_tools
 from alignd.textfmt import identity_text
 
@@ -41,15 +50,13 @@ CAL_DISAGREE_REL = 0.15  # observed vs predicted change of offset, beyond noise
 BROYDEN_MIN_SNR = 30.0  # update J only from moves this far above the noise
 DIVERGE_RATIO = 1.5
 HOLDER_LOOK_FRAMES = 3
-# the loop keeps correcting until the measured offset is below this fraction of the
-# tolerance or within its own noise (2 sigma): moves are cheap, chasing noise is not
-RESIDUAL_FRACTION = 0.3
-CONFORMANCE = 0.95  # "within tolerance" needs P(|offset| <= tolerance) >= this
-# ``procedure.systematic_um``: the 1-sigma per axis that no sweep averages out, the
-# turntable's radial error motion. Over a +-10 deg sweep a radial error motion that changes
-# with the angle is indistinguishable from a shifted centre (a 2 um third-harmonic wobble
-# shifts it by up to 6 um), and every sweep sees the same one. 3 um suits a precision
-# rotation stage; a rig with a better or worse bearing sets its own value.
+# the turntable's error motion, when no runout map is given, stands in as
+# ``procedure.systematic_um`` (1 sigma per axis): over a +-10 deg sweep a radial error motion
+# that changes with the angle is indistinguishable from a shifted centre (a 2 um
+# third-harmonic wobble shifts it by up to 6 um), and every sweep sees the same one. With a
+# map (``alignctl commission``) each sweep is corrected and the floor is measured.
+SOFT_LIMIT_MARGIN_DEG = 0.1
+MAX_CENTRE_JUMPS = 2  # a centre that jumps once may be a bump; twice, something is loose
 
 
 class _Stop(AligndError):
@@ -64,48 +71,42 @@ class _Stop(AligndError):
 
 @dataclass
 class _State:
-    iterations: int = 0
+    iterations: int = 0  # correction moves made
+    sweeps: int = 0
     last: Measurement | None = None
+    decision: Decision | None = None
     tilt_deg: float | None = None
     warnings: list[str] = field(default_factory=list)
     history: list[dict[str, Any]] = field(default_factory=list)
     calibration: Calibration | None = None
     compute_s: float = 0.0
     motion_s: float = 0.0
+    centre_jumps: int = 0  # sweeps whose centre disagreed with the pool (axis cannot move)
 
 
 def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
                   abort: threading.Event | None = None, recorder: RunRecorder | None = None,
                   tools: Tools | None = None, run_id: str | None = None,
-                  frames_per_step: int | None = None,
-                  systematic_um: float | None = None) -> RunResult:
-    """Align the sample's target point onto the rotation axis (see the module docstring)."""
+                  frames_per_step: int | None = None, systematic_um: float | None = None,
+                  runout: RunoutMap | None = None) -> RunResult:
+    """Align the sample's target point onto the mean rotation axis (see the module
+    docstring). ``runout``: the turntable's error-motion map from commissioning, if any."""
     return _Run(rig, cfg, "align", progress, abort, recorder, tools, run_id,
-                frames_per_step, systematic_um).execute()
+                frames_per_step, systematic_um, runout).execute()
 
 
 def run_check(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
               abort: threading.Event | None = None, recorder: RunRecorder | None = None,
               tools: Tools | None = None, run_id: str | None = None,
-              frames_per_step: int | None = None,
-                  systematic_um: float | None = None) -> RunResult:
+              frames_per_step: int | None = None, systematic_um: float | None = None,
+              runout: RunoutMap | None = None) -> RunResult:
     """Measure the offset against the tolerance; no translation stage moves.
 
-    Sweeps (pooling the centre) until the offset is shown within or beyond the tolerance
-    with 95 % confidence, at most ``procedure.max_iterations`` sweeps.
+    Answers from the first sweep the decision rule can decide on; when it cannot, measures
+    better (pooling the centre) up to ``procedure.max_sweeps`` sweeps.
     """
     return _Run(rig, cfg, "check", progress, abort, recorder, tools, run_id,
-                frames_per_step, systematic_um).execute()
-
-
-def within(m: Measurement) -> bool:
-    """Within tolerance with confidence: P(|offset| <= tolerance) >= 95 %."""
-    return m.p_within is not None and m.p_within >= CONFORMANCE
-
-
-def beyond(m: Measurement) -> bool:
-    """Out of tolerance with confidence: P(|offset| <= tolerance) <= 5 %."""
-    return m.p_within is not None and m.p_within <= 1.0 - CONFORMANCE
+                frames_per_step, systematic_um, runout).execute()
 
 
 class _Run:
@@ -113,7 +114,7 @@ class _Run:
                  progress: ProgressCallback | None, abort: threading.Event | None,
                  recorder: RunRecorder | None, tools: Tools | None,
                  run_id: str | None, frames_per_step: int | None = None,
-                 systematic_um: float | None = None) -> None:
+                 systematic_um: float | None = None, runout: RunoutMap | None = None) -> None:
         self.rig = rig
         self.cfg = cfg
         self.mode = mode
@@ -130,6 +131,8 @@ class _Run:
         self.systematic_um = (cfg.procedure.systematic_um if systematic_um is None
                               else systematic_um)
         self.pool = CentrePool()
+        self.runout = runout
+        self.plan = SweepPlan(self.p.sweep_deg, self.p.sweep_steps, self.frames_per_step)
 
     # ---- top level -------------------------------------------------------------------
     def execute(self) -> RunResult:
@@ -177,8 +180,10 @@ class _Run:
             offset_um=None if final is None else (float(final.offset_um[0]),
                                                   float(final.offset_um[1])),
             U_um=None if final is None else final.U_um,
-            iterations=self.st.iterations, tilt_deg=self.st.tilt_deg,
-            yaw_deg=None if final is None else final.yaw_deg, config_error=config_error)
+            iterations=self.st.iterations, sweeps=self.st.sweeps, tilt_deg=self.st.tilt_deg,
+            yaw_deg=None if final is None else final.yaw_deg, config_error=config_error,
+            budget=None if final is None else final.budget.to_dict(),
+            decision=None if final is None else self._decision(final).to_dict())
         if self.rig.truth is not None:
             try:
                 result.truth = dict(self.rig.truth())
@@ -192,6 +197,10 @@ class _Run:
             else self.st.calibration.to_dict(),
             "history": self.st.history, "warnings": self.st.warnings,
             "final": None if final is None else final.to_dict(),
+            "budget": None if final is None else final.budget.to_dict(),
+            "decision": None if final is None else self._decision(final).to_dict(),
+            "runout_map": None if self.runout is None else self.runout.to_json(),
+            "moves": self.st.iterations, "sweeps": self.st.sweeps,
             "compute_s": self.st.compute_s, "motion_s": self.st.motion_s,
             "tools": (self.tools.names if self.tools else None),
         }
@@ -225,30 +234,95 @@ class _Run:
         self.st.warnings.append(msg)
         self.recorder.event(f"warning: {msg}")
 
-    def _measure(self, kind: str, iteration: int) -> Measurement:
+    def _measure(self, kind: str) -> Measurement:
+        """One sweep with the current plan; the centre pooled over the run's sweeps."""
         assert self.tools is not None
+        self.st.sweeps += 1
+        n = self.st.sweeps
         px = (self.st.calibration.pixel_size_um if self.st.calibration is not None
               else configured_pixel_size_um(self.cfg))
         _data, m, warning = measure(
-            self.rig, self.cfg, self.tools, kind=kind, iteration=iteration, abort=self.abort,
+            self.rig, self.cfg, self.tools, kind=kind, iteration=n, abort=self.abort,
             progress=self._progress_safe, recorder=self.recorder, pixel_size_um=px,
-            pool=self.pool, frames_per_step=self.frames_per_step,
-            floor_um=self.systematic_um)
+            pool=self.pool, floor_um=self.systematic_um, runout=self.runout, plan=self.plan)
         if warning:
             self._warn(warning)
+            if "moved between sweeps" in warning:
+                self.st.centre_jumps += 1
         self.st.compute_s += m.compute_s
         self.st.motion_s += m.timings.get("motion_s", 0.0)
         self.st.last = m
-        self._emit("solve", f"{kind} {iteration}: offset {m.norm_um:.1f} ± {m.U_um:.1f} um "
-                   f"(centre sigma {m.sigma_centre_um:.1f} um over {m.n_sweeps} sweep(s), "
-                   f"P(within) {m.p_within:.2f})", m=m, iteration=iteration)
+        d = self._decision(m)
+        self._emit("solve", f"{kind} sweep {n}: {d.text()} (centre over {m.n_sweeps} "
+                   f"sweep(s))", m=m, iteration=n)
         return m
 
-    def _record(self, n: int, kind: str, m: Measurement, **extra: Any) -> dict[str, Any]:
-        rec = {"iteration": n, "kind": kind, **m.to_dict(), "timings": m.timings, **extra}
+    def _decision(self, m: Measurement) -> Decision:
+        return decide(m.norm_um, m.U_um, self.tol, self.p.decision_rule)
+
+    def _gain(self, m: Measurement) -> float:
+        """What a correction move is expected to gain (um): the measured distance minus the
+        expected distance after the move (the measurement's uncertainty, the stages'
+        landing scatter and the calibration's scale error on the move, in quadrature)."""
+        rep = self.p.stage_repeatability_um
+        rel = self.st.calibration.sigma_rel if self.st.calibration is not None else 0.0
+        after = math.sqrt(float(np.trace(m.cov_offset_um2)) + 2.0 * rep**2
+                          + (rel * m.norm_um) ** 2)
+        return m.norm_um - after
+
+    def _better_plan(self) -> SweepPlan | None:
+        """The next step up in measurement quality within the limits, or None at the top:
+        a wider sweep first (the centre's uncertainty falls with the swept angle), then
+        more frames per step (the tracking noise falls with their root)."""
+        cur = self.plan
+        tt = self.rig.axis("turntable").config
+        lim = tt.soft_limits
+        room = min(-lim.min - (tt.backlash_approach if tt.approach == "+" else 0.0),
+                   lim.max - (tt.backlash_approach if tt.approach == "-" else 0.0))
+        widest = min(self.p.max_sweep_deg or self.p.sweep_deg, room - SOFT_LIMIT_MARGIN_DEG)
+        if cur.half_deg < widest - 1e-6:
+            return SweepPlan(min(widest, 2.0 * cur.half_deg), cur.steps, cur.frames_per_step)
+        if cur.frames_per_step < self.p.max_frames_per_step:
+            return SweepPlan(cur.half_deg, cur.steps,
+                             min(2 * cur.frames_per_step, self.p.max_frames_per_step))
+        return None
+
+    def _measure_better(self) -> str:
+        """Step the plan up (it stays up for the rest of the run); describe what changed."""
+        nxt = self._better_plan()
+        if nxt is None:
+            return "another sweep at the same plan (the widest and finest allowed)"
+        old, self.plan = self.plan, nxt
+        if nxt.half_deg != old.half_deg:
+            return f"widening the sweep to +-{nxt.half_deg:g} deg"
+        return f"averaging {nxt.frames_per_step} frames per step"
+
+    def _floor_blocks(self, m: Measurement) -> str:
+        """Why no better measurement can decide ('' when one can): U cannot fall below
+        twice the residual error motion, which more sweeps do not average out."""
+        u_floor = m.budget.get("residual error motion")
+        need = abs(self.tol - m.norm_um)
+        if self.p.decision_rule != "guarded" or 2.0 * u_floor < need:
+            return ""
+        fix = ("re-run alignctl commission" if self.runout is not None
+               else "commission the rig (alignctl commission) for a runout map")
+        return (f"the residual error motion alone gives U >= {2.0 * u_floor:.1f} um, more "
+                f"than the {need:.1f} um between the offset and the tolerance; {fix}")
+
+    def _record(self, kind: str, m: Measurement, **extra: Any) -> dict[str, Any]:
+        n = self.st.sweeps
+        d = self._decision(m)
+        rec = {"iteration": n, "kind": kind, **m.to_dict(), "decision": d.to_dict(),
+               "moves": self.st.iterations, "gain_um": self._gain(m),
+               "timings": m.timings, **extra}
         self.st.history.append(rec)
         self.recorder.iteration(n, rec)
         return rec
+
+    def _tally(self) -> str:
+        moves, sweeps = self.st.iterations, self.st.sweeps
+        return (f"{moves} move{'s' if moves != 1 else ''}, "
+                f"{sweeps} sweep{'s' if sweeps != 1 else ''}")
 
     # ---- phases ----------------------------------------------------------------------
     def _prepare(self) -> None:
@@ -318,22 +392,29 @@ class _Run:
             self._warn(f"pre-check: {msg}")
 
     def _check(self) -> tuple[str, str, Measurement]:
-        n = 0
         while True:
-            n += 1
-            self.st.iterations = n
-            m = self._measure("check", n)
-            self._record(n, "check", m)
+            m = self._measure("check")
             if m.sigma_centre_um > self.p.max_center_sigma_um:
+                self._record("check", m, action="refused")
                 return ("out_of_tolerance", f"centre uncertainty {m.sigma_centre_um:.1f} um "
                         f"exceeds max_center_sigma_um {self.p.max_center_sigma_um:g}: cannot "
                         "show the offset is within tolerance", m)
-            if within(m):
-                return ("within_tolerance", f"offset {m.norm_um:.1f} ± {m.U_um:.1f} um (k=2) "
-                        f"within {self.tol:g} um", m)
-            if beyond(m) or n >= self.p.max_iterations:
-                return ("out_of_tolerance", f"offset {m.norm_um:.1f} ± {m.U_um:.1f} um (k=2) "
-                        f"not shown within {self.tol:g} um (P(within) {m.p_within:.2f})", m)
+            d = self._decision(m)
+            if d.conforms:
+                self._record("check", m, action="done")
+                return ("within_tolerance", f"{d.text()}; {self._tally()}", m)
+            if d.outcome == "does_not_conform":
+                self._record("check", m, action="done")
+                return ("out_of_tolerance", f"{d.text()}; {self._tally()}", m)
+            blocked = self._floor_blocks(m)
+            if blocked or self.st.sweeps >= self.p.max_sweeps:
+                self._record("check", m, action="stop")
+                return ("out_of_tolerance", f"not shown within: {d.text()}; " + (
+                    blocked or f"the measurement cannot decide after {self.st.sweeps} sweeps "
+                    "(procedure.max_sweeps)"), m)
+            what = self._measure_better()
+            self._record("check", m, action="measure better", next=what)
+            self._emit("sweep", f"cannot decide yet ({d.text()}); {what}", m=m)
 
     def _calibrate(self, refreshes: int = 0) -> Calibration:
         assert self.tools is not None
@@ -347,40 +428,67 @@ class _Run:
 
     def _align(self) -> tuple[str, str, Measurement]:
         cal = self._calibrate()
-        it = 1
-        self.st.iterations = 1
-        m = self._measure("align", it)
+        rep = self.p.stage_repeatability_um
+        m = self._measure("align")
         prev: Measurement | None = None
         ds_prev: np.ndarray | None = None
         extra: dict[str, Any] = {}
         while True:
             if prev is not None and ds_prev is not None:
                 cal, extra = self._consistency(cal, prev, m, ds_prev)
+            if self.st.centre_jumps >= MAX_CENTRE_JUMPS:
+                self._record("align", m, **extra, action="stop")
+                raise _Stop("not_converged", f"the centre of rotation moved between sweeps "
+                            f"{self.st.centre_jumps} times: the rotation axis cannot move, so "
+                            "the camera, the turntable mount or the tracking is not stable; "
+                            "no further move made", m)
             if m.sigma_centre_um > self.p.max_center_sigma_um:
-                self._record(it, "align", m, **extra, action="refused")
+                self._record("align", m, **extra, action="refused")
                 raise _Stop("not_converged", f"centre uncertainty {m.sigma_centre_um:.1f} um "
                             f"exceeds max_center_sigma_um {self.p.max_center_sigma_um:g}; "
                             "no move made", m)
-            if within(m) and m.norm_um <= max(RESIDUAL_FRACTION * self.tol,
-                                              2.0 * m.sigma_random_um):
-                self._record(it, "align", m, **extra, action="verify")
-                self._emit("verify", "within tolerance; verification sweep", m=m,
-                           iteration=it)
-                mv = self._measure("verify", it)
-                if within(mv):
-                    self._record(it, "verify", mv, action="done")
-                    return ("aligned", f"offset {mv.norm_um:.1f} ± {mv.U_um:.1f} um (k=2) "
-                            f"within {self.tol:g} um after {it} iteration(s)", mv)
-                self._warn(f"verification sweep shows {mv.norm_um:.1f} ± {mv.U_um:.1f} um, "
-                           "not within tolerance")
-                if it >= self.p.max_iterations:
-                    self._record(it, "verify", mv, action="stop")
-                    raise _Stop("out_of_tolerance", f"verification: offset {mv.norm_um:.1f} ± "
-                                f"{mv.U_um:.1f} um not within {self.tol:g} um and the "
-                                f"iteration cap ({self.p.max_iterations}) is reached", mv)
-                it += 1
-                self.st.iterations = it
-                prev, ds_prev, m, extra = None, None, mv, {}
+            d = self._decision(m)
+            gain = self._gain(m)
+            moves_left = self.st.iterations < self.p.max_iterations
+            sweeps_left = self.st.sweeps < self.p.max_sweeps
+            helps = gain > rep and moves_left and sweeps_left
+            if d.conforms and not helps:
+                if (m.U_um > self.p.target_u_fraction * self.tol and sweeps_left
+                        and self._better_plan() is not None):
+                    what = self._measure_better()
+                    self._record("align", m, **extra, action="measure better", next=what)
+                    self._emit("sweep", f"within, but U {m.U_um:.1f} um is above "
+                               f"{self.p.target_u_fraction:g} of the tolerance; {what}", m=m)
+                    prev, ds_prev, extra = None, None, {}
+                    m = self._measure("align")
+                    continue
+                self._record("align", m, **extra, action="done")
+                return ("aligned", f"{d.text()}; {self._tally()}", m)
+            if not helps:
+                if gain > rep:  # a move would help, but the caps forbid it
+                    self._record("align", m, **extra, action="stop")
+                    cap = (f"the move cap (procedure.max_iterations {self.p.max_iterations})"
+                           if not moves_left else
+                           f"the sweep cap (procedure.max_sweeps {self.p.max_sweeps})")
+                    raise _Stop("not_converged", f"{d.text()}; {cap} is reached "
+                                f"after {self._tally()}", m)
+                if d.outcome == "does_not_conform":
+                    self._record("align", m, **extra, action="stop")
+                    raise _Stop("not_converged", f"{d.text()}; a move would gain "
+                                f"{max(gain, 0.0):.1f} um, less than the stages' "
+                                f"repeatability {rep:g} um: the stages cannot get closer", m)
+                blocked = self._floor_blocks(m)
+                if blocked or not sweeps_left:
+                    self._record("align", m, **extra, action="stop")
+                    raise _Stop("out_of_tolerance", f"not shown within: {d.text()}; " + (
+                        blocked or f"the measurement cannot decide after {self.st.sweeps} "
+                        "sweeps (procedure.max_sweeps)"), m)
+                what = self._measure_better()
+                self._record("align", m, **extra, action="measure better", next=what)
+                self._emit("sweep", f"cannot decide yet and a move would gain only "
+                           f"{max(gain, 0.0):.1f} um; {what}", m=m)
+                prev, ds_prev, extra = None, None, {}
+                m = self._measure("align")
                 continue
             reason = self._divergence(prev, m, ds_prev)
             if reason:
@@ -388,19 +496,13 @@ class _Run:
                     self._warn(f"{reason}; refreshing the calibration")
                     cal = self._calibrate(cal.refreshes + 1)
                 else:
-                    self._record(it, "align", m, **extra, action="stop")
+                    self._record("align", m, **extra, action="stop")
                     raise _Stop("not_converged", f"{reason} (offset {m.norm_um:.1f} um)", m)
-            if it >= self.p.max_iterations:
-                self._record(it, "align", m, **extra, action="stop")
-                raise _Stop("not_converged", f"offset {m.norm_um:.1f} ± {m.U_um:.1f} um not "
-                            f"within {self.tol:g} um after {it} iterations (cap)", m)
-            ds_actual, move_rec = self._correct(cal, m, it)
-            self._record(it, "align", m, **extra, action="move", **move_rec)
-            prev, ds_prev = m, ds_actual
-            it += 1
-            self.st.iterations = it
-            m = self._measure("align", it)
-            extra = {}
+            ds_actual, move_rec = self._correct(cal, m, self.st.iterations + 1)
+            self.st.iterations += 1
+            self._record("align", m, **extra, action="move", **move_rec)
+            prev, ds_prev, extra = m, ds_actual, {}
+            m = self._measure("align")
 
     def _consistency(self, cal: Calibration, prev: Measurement, m: Measurement,
                      ds: np.ndarray) -> tuple[Calibration, dict[str, Any]]:

@@ -2,8 +2,11 @@
 
 Contract keys: ``run_id``, ``verdict``, ``offset_um`` ([x, y], turntable frame),
 ``offset_norm_um``, ``U_um`` (expanded uncertainty, k = 2), ``iterations``, ``tilt_deg``,
-``yaw_deg``, ``reason``; on a simulated rig also ``truth`` (``offset_um``,
-``offset_norm_um``) read from the simulator after the run, never by the loop.
+``yaw_deg``, ``reason``; since the decisive-verdicts release also ``sweeps`` (measurements;
+``iterations`` counts correction moves), ``decision`` (the rule, guard band, zones and the
+operator's line) and ``budget`` (the uncertainty budget, um); on a simulated rig also
+``truth`` (``offset_um``, ``offset_norm_um``) read from the simulator after the run, never
+by the loop.
 """
 
 from __future__ import annotations
@@ -39,11 +42,14 @@ class RunResult:
     reason: str = ""
     offset_um: tuple[float, float] | None = None
     U_um: float | None = None
-    iterations: int = 0
+    iterations: int = 0  # correction moves
+    sweeps: int = 0  # measurement sweeps
     tilt_deg: float | None = None
     yaw_deg: float | None = None
     truth: dict[str, Any] | None = None
     config_error: bool = False  # the fault was a config problem (exit code 2)
+    budget: dict[str, Any] | None = None
+    decision: dict[str, Any] | None = None
     details: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -77,7 +83,17 @@ class RunResult:
             "tilt_deg": _num(self.tilt_deg, 4),
             "yaw_deg": _num(self.yaw_deg, 4),
             "reason": self.reason,
+            "sweeps": int(self.sweeps),
         }
+        if self.decision is not None:
+            out["decision"] = {k: (_num(v) if isinstance(v, float) else v)
+                               for k, v in self.decision.items()}
+        if self.budget is not None:
+            out["budget"] = {
+                "contributions": [{**c, "u_um": _num(c["u_um"])}
+                                  for c in self.budget["contributions"]],
+                "combined_um": _num(self.budget["combined_um"]), "k": self.budget["k"],
+                "U_um": _num(self.budget["U_um"])}
         if self.truth is not None:
             t_off = [float(v) for v in self.truth["offset_um"]]
             out["truth"] = {"source": "simulator (read after the run, never by the loop)",

@@ -16,15 +16,18 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from alignd.config import AligndConfig, HolderConfig
 from alignd.errors import SolveError, VisionError
+from alignd.procedures.budget import Budget, Contribution, u_of
 from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
+from alignd.procedures.runout import RunoutMap
 from alignd.procedures.tools import Tools
 from drivers.camera import Camera, Frame
 from drivers.errors import CameraError
@@ -124,6 +127,17 @@ def apply_h(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return q / w[..., None]
 
 
+def map_point(H: np.ndarray, c: np.ndarray, cov: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """A point and its covariance through a homography (first order)."""
+    c = np.asarray(c, float)
+    out = apply_h(H, c[None, :])[0]
+    eps = 1e-3
+    Jm = np.column_stack([(apply_h(H, (c + eps * e)[None, :])[0] - out) / eps
+                          for e in np.eye(2)])
+    return out, Jm @ np.asarray(cov, float) @ Jm.T
+
+
 def rectifier(points: np.ndarray, holder: HolderConfig) -> np.ndarray:
     """An image-to-image homography that undoes the perspective of the holder's plane.
 
@@ -182,9 +196,29 @@ class SweepData:
         return {"version": 1, "pixel_size_um": pixel_size_um, "frames": frames}
 
 
+@dataclass(frozen=True)
+class SweepPlan:
+    """How one sweep measures: half-width (deg), number of steps, frames averaged per step.
+
+    The procedure starts with the configured plan and widens it (within the turntable's
+    soft limits and ``procedure.max_sweep_deg``) or averages more frames when a
+    measurement cannot decide."""
+
+    half_deg: float
+    steps: int
+    frames_per_step: int = 1
+
+    def angles(self, centre_deg: float = 0.0) -> np.ndarray:
+        return centre_deg + np.linspace(-self.half_deg, self.half_deg, self.steps)
+
+    def to_dict(self) -> dict[str, float]:
+        return {"half_deg": self.half_deg, "steps": self.steps,
+                "frames_per_step": self.frames_per_step}
+
+
 @dataclass
 class Measurement:
-    """The target's offset from the rotation axis, turntable frame, with its uncertainty."""
+    """The target's offset from the mean rotation axis, turntable frame, with its uncertainty."""
 
     centre_px: np.ndarray
     cov_centre_px2: np.ndarray
@@ -200,12 +234,16 @@ class Measurement:
     n_tracked: int
     inliers: int
     outliers: int
+    budget: Budget
     compute_s: float = 0.0
     timings: dict[str, float] = field(default_factory=dict)
     n_sweeps: int = 1
-    sigma_random_um: float = 0.0  # noise part only (no systematic floor), worst axis
+    sigma_random_um: float = 0.0  # statistical part only (no floor), worst axis, 1 sigma
     sweep_centre_px: np.ndarray | None = None
     p_within: float | None = None
+    plan: SweepPlan | None = None
+    runout_corrected: bool = False
+    excess_um: float = 0.0  # between-sweep scatter beyond the fits' own (1 sigma per axis)
 
     @property
     def norm_um(self) -> float:
@@ -216,6 +254,11 @@ class Measurement:
         """Expanded uncertainty (k = 2) of the offset vector: 2 sqrt(trace(cov))."""
         return 2.0 * math.sqrt(max(float(np.trace(self.cov_offset_um2)), 0.0))
 
+    @property
+    def sigma_axis_um(self) -> float:
+        """Root-mean-square 1-sigma per axis (the offset's scatter, either direction)."""
+        return math.sqrt(max(float(np.trace(self.cov_offset_um2)) / 2.0, 0.0))
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "centre_px": self.centre_px.tolist(),
@@ -225,6 +268,7 @@ class Measurement:
             "offset_norm_um": self.norm_um,
             "cov_offset_um2": self.cov_offset_um2.tolist(),
             "U_um": self.U_um,
+            "budget": self.budget.to_dict(),
             "scale_px_per_mm": self.scale_px_per_mm,
             "yaw_deg": self.yaw_deg,
             "sigma_centre_um": self.sigma_centre_um,
@@ -235,7 +279,30 @@ class Measurement:
             "sweep_centre_px": None if self.sweep_centre_px is None
             else self.sweep_centre_px.tolist(),
             "p_within": self.p_within, "sigma_random_um": self.sigma_random_um,
+            "plan": None if self.plan is None else self.plan.to_dict(),
+            "runout_corrected": self.runout_corrected, "excess_um": self.excess_um,
         }
+
+
+@dataclass
+class _Centre:
+    """A solver result moved to another frame (for results that are not dataclasses)."""
+
+    center_px: np.ndarray
+    cov_px2: np.ndarray
+    src: Any
+
+    @property
+    def rms_residual_px(self) -> float:
+        return float(getattr(self.src, "rms_residual_px", float("nan")))
+
+    @property
+    def inliers(self) -> int:
+        return int(getattr(self.src, "inliers", 0))
+
+    @property
+    def outliers(self) -> int:
+        return int(getattr(self.src, "outliers", 0))
 
 
 CHI2_CENTRE_MOVED = 18.4  # 2 dof, p = 1e-4: a sweep's centre disagrees with the pool
@@ -244,7 +311,10 @@ CHI2_CENTRE_MOVED = 18.4  # 2 dof, p = 1e-4: a sweep's centre disagrees with the
 @dataclass
 class PooledCentre:
     """The centre of rotation pooled over the sweeps of one run (the axis does not move
-    when the stages do, so every sweep measures the same centre)."""
+    when the stages do, so every sweep measures the same centre).
+
+    ``cov_px2`` includes the between-sweep excess ``excess_px2`` (per axis); ``cov_fit_px2``
+    is what the fits alone claim."""
 
     center_px: np.ndarray
     cov_px2: np.ndarray
@@ -252,10 +322,22 @@ class PooledCentre:
     inliers: int
     outliers: int
     n_sweeps: int
+    cov_fit_px2: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+    excess_px2: float = 0.0
+    chi2: float = 0.0
 
 
 class CentrePool:
-    """Inverse-covariance weighted mean of the per-sweep centres, with a consistency check."""
+    """Weighted mean of the per-sweep centres, random-effects style.
+
+    Each sweep's centre has its fit covariance C_i; what the fits cannot know (residual
+    error motion that differs between sweeps, drift) shows as scatter beyond the C_i. When
+    that scatter is significant (chi-square beyond its 99 % point), the excess variance
+    tau^2 per axis is the Paule-Mandel estimate (the tau^2 at which the weighted scatter
+    equals its degrees of freedom) and each sweep is weighted by (C_i + tau^2 I)^-1. That
+    is the floor measured from repeated sweeps. (Estimated always, tau^2 would follow the
+    noise of two or three sweeps and inflate U by chance.)
+    """
 
     def __init__(self) -> None:
         self.items: list[tuple[np.ndarray, np.ndarray, Any]] = []
@@ -276,15 +358,36 @@ class CentrePool:
         self.items.append((c, cov, res))
         return self.pooled(), warning
 
+    @staticmethod
+    def _mean(cs: list[np.ndarray], covs: list[np.ndarray], tau2: float
+              ) -> tuple[np.ndarray, np.ndarray, float]:
+        Ws = [np.linalg.inv(cov + tau2 * np.eye(2)) for cov in covs]
+        cov_p = np.linalg.inv(sum(Ws))
+        mean = cov_p @ sum(W @ c for W, c in zip(Ws, cs, strict=True))
+        q = float(sum((c - mean) @ W @ (c - mean) for W, c in zip(Ws, cs, strict=True)))
+        return mean, cov_p, q
+
     def pooled(self) -> PooledCentre:
-        W = sum(np.linalg.inv(cov) for _, cov, _ in self.items)
-        b = sum(np.linalg.solve(cov, c) for c, cov, _ in self.items)
-        cov_p = np.linalg.inv(W)
+        cs = [c for c, _, _ in self.items]
+        covs = [cov for _, cov, _ in self.items]
+        dof = 2 * (len(cs) - 1)
+        mean0, cov0, q0 = self._mean(cs, covs, 0.0)
+        tau2 = 0.0
+        if dof > 0 and q0 > float(chi2_dist.ppf(0.99, dof)):
+            # Paule-Mandel: q(tau2) = dof, q decreasing in tau2
+            lo, hi = 0.0, max(float(np.max([np.sum((c - mean0) ** 2) for c in cs])), 1e-12)
+            while self._mean(cs, covs, hi)[2] > dof:
+                hi *= 4.0
+            for _ in range(60):
+                mid = (lo + hi) / 2
+                lo, hi = (mid, hi) if self._mean(cs, covs, mid)[2] > dof else (lo, mid)
+            tau2 = hi
+        mean, cov_p, _ = self._mean(cs, covs, tau2)
         last = self.items[-1][2]
-        return PooledCentre(cov_p @ b, cov_p, float(getattr(last, "rms_residual_px", np.nan)),
+        return PooledCentre(mean, cov_p, float(getattr(last, "rms_residual_px", np.nan)),
                             int(sum(getattr(r, "inliers", 0) for *_, r in self.items)),
                             int(sum(getattr(r, "outliers", 0) for *_, r in self.items)),
-                            len(self.items))
+                            len(self.items), cov_fit_px2=cov0, excess_px2=tau2, chi2=q0)
 
 
 def conformance_probability(offset_um: np.ndarray, cov_um2: np.ndarray,
@@ -305,16 +408,18 @@ def sweep_angles(cfg: AligndConfig, centre_deg: float = 0.0) -> np.ndarray:
 
 def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: int,
               abort: threading.Event | None, progress: ProgressCallback,
-              recorder: RunRecorder, frames_per_step: int = 1) -> SweepData:
+              recorder: RunRecorder, frames_per_step: int = 1,
+              angles: np.ndarray | None = None) -> SweepData:
     """Turn through the sweep, grabbing and tracking settled frames at every step.
 
-    With ``frames_per_step`` > 1 the corners of the frames at one step are averaged (the
-    sensor noise is independent per frame; the pose is the same).
+    ``angles`` default to the configured sweep. With ``frames_per_step`` > 1 the corners of
+    the frames at one step are averaged (the sensor noise is independent per frame; the
+    pose is the same).
     """
     tt = rig.axis("turntable")
     cam = rig.camera("top")
     assert cam is not None  # validate_rig guarantees it
-    angles = sweep_angles(cfg)
+    angles = sweep_angles(cfg) if angles is None else np.asarray(angles, float)
     if tt.config.approach == "-":
         angles = angles[::-1]
     n = len(angles)
@@ -362,8 +467,41 @@ def _wrap180(deg: float) -> float:
     return (deg + 180.0) % 360.0 - 180.0
 
 
+@dataclass(frozen=True)
+class Floor:
+    """What no sweep averages out, per axis (1 sigma, um), and where the number comes from."""
+
+    sigma_um: float
+    basis: str
+    kind: Literal["A", "B"] = "B"
+
+
+def runout_floor(runout: RunoutMap | None, assumed_um: float) -> Floor:
+    """The per-axis floor a runout map leaves: the map's own uncertainty.
+
+    Taken as the commissioning fit's per-point scatter ``residual_um`` (not divided down by
+    the number of angles: model mismatch, perspective and the tracker's own systematic
+    errors do not average out), plus, for a map short of a full turn, the error motion
+    the rigid fit over the covered range may mistake for axis and arm: the amplitude times
+    the missing fraction of the turn (0.25 um for 4 um over 340 deg; the simulator's maps
+    come out within 0.3 um rms of its bearing). Without a map the error motion is not
+    corrected and ``assumed_um`` stands for it.
+    """
+    if runout is None:
+        return Floor(assumed_um, f"assumed procedure.systematic_um {assumed_um:g} um/axis "
+                     "(no runout map: run alignctl commission)", "B")
+    a = runout.angles_deg
+    step = float(np.median(np.diff(a)))
+    missing = 0.0 if runout.full_turn else max(360.0 - float(a[-1] - a[0]) - step, 0.0) / 360
+    u_partial = missing * runout.amplitude_um
+    u = math.hypot(runout.residual_um, u_partial)
+    return Floor(u, f"runout map: {runout.residual_um:.2f} um per point over {len(a)} angles"
+                 + (f", {u_partial:.2f} um for the {360 * missing:.0f} deg it misses"
+                    if missing else ""), "A")
+
+
 def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
-                   floor_um: float = 0.0) -> Measurement:
+                   floor: Floor | float = 0.0) -> Measurement:
     """Target offset from the centre, in the turntable frame at angle 0, with covariance.
 
     Each tracked frame i gives the target t_i at readback angle a_i; rotating it back about
@@ -371,13 +509,17 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
     offset; its covariance is the centre's (propagated through the mean rotation) plus the
     scatter of the per-frame values over n (the target point's own noise). The holder's
     size sets the px-to-mm scale, with its scatter propagated as a relative error.
-    ``floor_um`` (per axis, 1 sigma) stands for what no sweep averages out: the turntable's
-    error motion and perspective.
+    ``floor`` (per axis, 1 sigma) stands for what no sweep averages out: the error motion
+    the runout map leaves. Each part is a line of the measurement's budget.
     """
+    if not isinstance(floor, Floor):
+        floor = Floor(float(floor), "assumed", "B")
     ok = data.tracked
     idx = np.flatnonzero(ok)
     c = np.asarray(centre.center_px, float)
     cov_c = np.asarray(centre.cov_px2, float)
+    cov_fit = np.asarray(getattr(centre, "cov_fit_px2", cov_c), float)
+    n_sw = int(getattr(centre, "n_sweeps", 1))
     poses = [holder_pose(data.points[i], holder) for i in idx]
     ang = np.asarray(data.readback_deg, float)[idx]
     rback = rot(-ang)  # (n, 2, 2)
@@ -392,34 +534,109 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
     s = float(scales.mean())
     rel_s = float(scales.std(ddof=1) / math.sqrt(n) / s) if n > 1 else 0.0
     off_mm = off / s
-    cov_rand = cov_off / s**2 + rel_s**2 * np.outer(off_mm, off_mm)
-    cov_mm = cov_rand + (floor_um / 1000.0) ** 2 * np.eye(2)
+    to_um2 = 1e6 / s**2
+    cov_centre_fit = A @ cov_fit @ A.T * to_um2
+    cov_excess = A @ (cov_c - cov_fit) @ A.T * to_um2
+    cov_target = cov_t * to_um2
+    cov_scale = rel_s**2 * np.outer(off_mm, off_mm) * 1e6
+    cov_floor = floor.sigma_um**2 * np.eye(2)
+    cov_rand = cov_centre_fit + cov_excess + cov_target + cov_scale
+    cov_um = cov_rand + cov_floor
+    excess_um = math.sqrt(max(float(np.trace(cov_excess)) / 2, 0.0) * n_sw)
+    motion_basis = floor.basis + (
+        f"; sweep-to-sweep excess {excess_um:.2f} um/axis over {n_sw} sweeps"
+        if n_sw > 1 else "")
+    budget = Budget((
+        Contribution("centre fit", u_of(cov_centre_fit), "A",
+                     f"pooled centre of rotation over {n_sw} sweep(s)"),
+        Contribution("target point", u_of(cov_target), "A",
+                     f"scatter of the target over {n} frames"),
+        Contribution("pixel scale", u_of(cov_scale), "A",
+                     f"holder-size scale {s:.3f} px/mm, rel. {rel_s:.1e}"),
+        Contribution("residual error motion", u_of(cov_floor + cov_excess), floor.kind,
+                     motion_basis),
+        Contribution("stage repeatability", 0.0, "B",
+                     "none: the verdict's sweep followed the last move"),
+    ))
     yaw = [_wrap180(p.angle_deg - a) for p, a in zip(poses, ang, strict=True)]
     yaw_ref = yaw[0]
     yaw_deg = _wrap180(yaw_ref + float(np.mean([_wrap180(y - yaw_ref) for y in yaw])))
     sigma_c = math.sqrt(max(float(np.linalg.eigvalsh(cov_c).max()), 0.0)) / s * 1000.0
     return Measurement(
         centre_px=c, cov_centre_px2=cov_c, offset_px=off, cov_offset_px2=cov_off,
-        scale_px_per_mm=s, offset_um=off_mm * 1000.0, cov_offset_um2=cov_mm * 1e6,
+        scale_px_per_mm=s, offset_um=off_mm * 1000.0, cov_offset_um2=cov_um,
         yaw_deg=yaw_deg, sigma_centre_um=sigma_c,
         rms_residual_px=float(getattr(centre, "rms_residual_px", float("nan"))),
         n_frames=len(data.readback_deg), n_tracked=n,
         inliers=int(getattr(centre, "inliers", n * 4)),
-        outliers=int(getattr(centre, "outliers", 0)),
-        sigma_random_um=math.sqrt(max(float(np.linalg.eigvalsh(cov_rand).max()), 0.0)) * 1e3)
+        outliers=int(getattr(centre, "outliers", 0)), budget=budget,
+        sigma_random_um=math.sqrt(max(float(np.linalg.eigvalsh(cov_rand).max()), 0.0)),
+        excess_um=excess_um)
+
+
+def map_floor_cov(runout: RunoutMap, data: SweepData, centre: Any, holder: HolderConfig,
+                  pixel_size_mm: float, harmonics: tuple[int, ...] = (2, 3, 4, 5),
+                  method: str = "rigid-known") -> np.ndarray:
+    """The offset's covariance (um^2) from the runout map's own uncertainty, propagated
+    through this sweep.
+
+    Why not just the map's per-point scatter: over +-10 deg a translation that changes
+    linearly with the angle is read as a rotation about a shifted centre, so a map error's
+    *slope* in the swept range moves the centre about 1/(half-width in rad) times as much
+    (six times for 10 deg). The map's coefficients (harmonics, with the rigid terms they
+    trade with on a partial turn) have covariance s^2 (A'A)^-1 with s its per-point scatter;
+    each coefficient's effect on this sweep's offset comes from re-fitting the sweep with
+    that harmonic added (``rigid-known``: linear and fast; the free-angle fit responds the
+    same to a common translation); G Cov G' is the result.
+    """
+    from alignd.procedures.runout import _harmonic_columns, _rigid_columns
+    from alignd.solve import Sweep, solve_centre
+
+    am = np.radians(runout.angles_deg)
+    n = len(am)
+    hs = tuple(k for k in harmonics if k >= 2)
+    while hs and 4 + 4 * len(hs) > n:
+        hs = hs[:-1]
+    if not hs:
+        return np.zeros((2, 2))
+    A = np.hstack([_rigid_columns(am, 1), _harmonic_columns(am, hs)])
+    s_mm = runout.residual_um / 1000.0
+    cov_coef = s_mm**2 * np.linalg.pinv(A.T @ A)[4:, 4:]
+    ang = np.asarray(data.readback_deg, float)
+    basis = _harmonic_columns(np.radians(ang), hs)  # (2F, 4K): x rows, y rows interleaved
+
+    def offset(points: np.ndarray) -> np.ndarray:
+        res = solve_centre(Sweep(ang, points, None), method=method)
+        return measure_offset(dataclasses.replace(data, points=points), res, holder).offset_um
+
+    base = offset(data.points)
+    step_mm = 0.001  # 1 um of the harmonic: the fit is linear in it
+    G = np.zeros((2, basis.shape[1]))
+    for j in range(basis.shape[1]):
+        d = basis[:, j].reshape(-1, 2) * step_mm / pixel_size_mm  # (F, 2) px per frame
+        G[:, j] = (offset(data.points + d[:, None, :]) - base) / step_mm
+    return G @ cov_coef @ G.T
 
 
 def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: int,
             abort: threading.Event | None, progress: ProgressCallback,
             recorder: RunRecorder, pixel_size_um: float | None,
             pool: CentrePool | None = None, frames_per_step: int = 1,
-            floor_um: float = 0.0, rectify: bool = True) -> tuple[SweepData, Measurement, str]:
-    """Sweep, check the tracking, solve the centre (pooled), locate the target.
+            floor_um: float = 0.0, rectify: bool = True, runout: RunoutMap | None = None,
+            plan: SweepPlan | None = None) -> tuple[SweepData, Measurement, str]:
+    """Sweep, check the tracking, correct for the runout map, solve the centre (pooled),
+    locate the target.
 
-    Returns the raw data, the measurement and a warning from the pool ('' if none).
+    With a ``runout`` map every frame's corners are moved back by the error motion at its
+    read-back angle before anything is fitted, so the centre is the mean axis of rotation;
+    the floor is then the map's uncertainty (plus the sweep-to-sweep excess), else
+    ``floor_um``. Returns the raw data, the measurement and a warning ('' if none).
     """
+    p = cfg.procedure
+    plan = plan or SweepPlan(p.sweep_deg, p.sweep_steps, frames_per_step)
     data = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
-                     progress=progress, recorder=recorder, frames_per_step=frames_per_step)
+                     progress=progress, recorder=recorder,
+                     frames_per_step=plan.frames_per_step, angles=plan.angles())
     n_ok = int(data.tracked.sum())
     n = len(data.readback_deg)
     recorder.sweep(kind, iteration, data.to_json(pixel_size_um), data.commanded_deg,
@@ -431,7 +648,13 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
                            iteration=iteration))
     t0 = time.perf_counter()
     P = rectifier(data.points, cfg.holder) if rectify else np.eye(3)
-    rect = dataclasses.replace(data, points=apply_h(P, data.points))
+    pts = apply_h(P, data.points)
+    if runout is not None:  # the map is in the rectified view too (see sweep_runout)
+        ok = data.tracked
+        scale = float(np.mean([holder_pose(pts[i], cfg.holder).scale_px_per_mm
+                               for i in np.flatnonzero(ok)]))
+        pts = runout.correct_px(np.asarray(data.readback_deg), pts, 1.0 / scale)
+    rect = dataclasses.replace(data, points=pts)
     try:
         centre = tools.solve(np.asarray(data.readback_deg), rect.points, pixel_size_um)
     except SolveError:
@@ -442,14 +665,115 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     warning = ""
     used: Any = centre
     if pool is not None:
-        used, warning = pool.add(centre)
-    m = measure_offset(rect, used, cfg.holder, floor_um)
+        # pool in the camera's own image frame: each sweep's rectifier differs a little
+        # (it depends on where the holder is), the axis' image point does not
+        Pinv = np.linalg.inv(P)
+        c_img, cov_img = map_point(Pinv, centre.center_px, centre.cov_px2)
+        pooled, warning = pool.add(dataclasses.replace(centre, center_px=c_img,
+                                                       cov_px2=cov_img)
+                                   if dataclasses.is_dataclass(centre) else
+                                   _Centre(c_img, cov_img, centre))
+        c_r, cov_r = map_point(P, pooled.center_px, pooled.cov_px2)
+        _, cov_fit_r = map_point(P, pooled.center_px, pooled.cov_fit_px2)
+        used = dataclasses.replace(pooled, center_px=c_r, cov_px2=cov_r, cov_fit_px2=cov_fit_r)
+        if not warning and pooled.excess_px2 > 0:
+            what = "the runout map" if runout is not None else "each other"
+            warning = (f"the sweeps' centres disagree with {what} (chi2 {pooled.chi2:.1f} over "
+                       f"{pooled.n_sweeps} sweeps): the floor is taken from their scatter"
+                       + ("; re-run alignctl commission to refresh the map"
+                          if runout is not None else ""))
+    floor = runout_floor(runout, floor_um)
+    if runout is not None:
+        try:
+            cov_map = map_floor_cov(runout, rect, used, cfg.holder, 1.0 / scale)
+            u_axis = math.sqrt(max(float(np.trace(cov_map)) / 2.0, 0.0))
+            floor = Floor(u_axis, f"runout map ({runout.residual_um:.2f} um per point over "
+                          f"{len(runout.angles_deg)} angles) propagated through this sweep",
+                          "A")
+        except (SolveError, ValueError, np.linalg.LinAlgError) as exc:
+            log.warning("runout map uncertainty not propagated (%s); using its scatter", exc)
+    m = measure_offset(rect, used, cfg.holder, floor)
     m.n_sweeps = int(getattr(used, "n_sweeps", 1))
     m.sweep_centre_px = np.asarray(centre.center_px, float)
-    m.p_within = conformance_probability(m.offset_um, m.cov_offset_um2,
-                                         cfg.procedure.tolerance_um)
+    m.plan = plan
+    m.runout_corrected = runout is not None
+    m.p_within = conformance_probability(m.offset_um, m.cov_offset_um2, p.tolerance_um)
     t2 = time.perf_counter()
     m.timings = {"track_s": data.track_s, "solve_s": t1 - t0, "offset_s": t2 - t1,
                  "grab_s": data.grab_s, "motion_s": data.motion_s}
     m.compute_s = data.track_s + (t2 - t0)
     return data, m, warning
+
+
+def sweep_runout(rig: Rig, cfg: AligndConfig, tools: Tools, *, half_deg: float = 180.0,
+                 step_deg: float = 5.0, frames_per_step: int = 2,
+                 abort: threading.Event | None = None,
+                 progress: ProgressCallback | None = None,
+                 recorder: RunRecorder | None = None,
+                 harmonics: tuple[int, ...] = (2, 3, 4, 5)) -> RunoutMap:
+    """Map the turntable's error motion with one wide sweep (what commissioning does).
+
+    The holder's centre (the mean of its four corners, whatever order a tracker gives them
+    in over a wide turn) is tracked at every step; its path, less the best rigid rotation,
+    is the error motion (``fit_runout``). A full turn (the default) maps it about the mean
+    axis; the turntable's soft limits must allow the sweep.
+    """
+    from alignd.procedures.recorder import NullRecorder
+    from alignd.procedures.runout import fit_runout
+
+    angles = np.arange(-half_deg, half_deg - 1e-9 if half_deg >= 180.0 else half_deg + 1e-9,
+                       step_deg)
+    data = run_sweep(rig, cfg, tools, kind="runout", iteration=0, abort=abort,
+                     progress=progress or (lambda _ev: None),
+                     recorder=recorder or NullRecorder(), frames_per_step=frames_per_step,
+                     angles=angles)
+    ok = data.tracked
+    if int(ok.sum()) < 8:
+        raise VisionError(f"runout sweep: holder tracked in only {int(ok.sum())} of "
+                          f"{len(angles)} frames")
+    # perspective first, as for every sweep: a camera a little off the axis images the
+    # holder's circle as an ellipse, which the fit would take for error motion. The
+    # holder plane's rectifier does not depend on the pose; it is learnt from the frames
+    # near the zero, where a tracker keeps the corners in one order.
+    near = np.abs(np.asarray(data.readback_deg)) <= 30.0
+    P = rectifier(np.where(near[:, None, None], data.points, np.nan), cfg.holder)
+    data = dataclasses.replace(data, points=apply_h(P, data.points))
+    # the scale from the holder's edges, longer to longer (order-free)
+    long_mm, short_mm = max(cfg.holder.size_mm), min(cfg.holder.size_mm)
+    scales = []
+    for i in np.flatnonzero(ok):
+        c = data.points[i]
+        e = np.hypot(*(np.roll(c, -1, axis=0) - c).T)  # the four edge lengths
+        a_len, b_len = (e[0] + e[2]) / 2, (e[1] + e[3]) / 2
+        scales.append((max(a_len, b_len) / long_mm + min(a_len, b_len) / short_mm) / 2)
+    centres = data.points.mean(axis=1)  # NaN rows where tracking failed
+    readback = np.asarray(data.readback_deg)
+    return fit_runout(image_angles_deg(data.points, readback), centres,
+                      1.0 / float(np.mean(scales)), harmonics=harmonics)
+
+
+def image_angles_deg(points: np.ndarray, readback_deg: np.ndarray) -> np.ndarray:
+    """Each frame's turntable angle from the holder's own orientation (its longer edges,
+    whatever order the tracker gives the corners in), the read-back only resolving the
+    180 deg ambiguity and the zero. Why: an encoder's periodic error turns the holder's
+    arm by a few millidegrees, which a runout fit on the read-back angles would take for
+    error motion (about 1 um at a 20 mm arm for 3 mdeg)."""
+    rb = np.asarray(readback_deg, float)
+    theta = np.full(len(rb), np.nan)
+    for i, c in enumerate(np.asarray(points, float)):
+        if not np.all(np.isfinite(c)):
+            continue
+        e = np.roll(c, -1, axis=0) - c
+        lengths = np.hypot(e[:, 0], e[:, 1])
+        k = 0 if lengths[0] + lengths[2] >= lengths[1] + lengths[3] else 1
+        d = e[k] - e[k + 2]  # the two long edges run opposite ways round the rectangle
+        theta[i] = math.degrees(math.atan2(d[1], d[0]))
+    rel = (theta - rb + 90.0) % 180.0 - 90.0  # orientation less read-back, mod 180
+    ok = np.isfinite(rel)
+    if not ok.any():
+        return rb
+    # the common zero: a circular mean on the doubled angle (mod 180)
+    z = np.exp(2j * np.radians(rel[ok]))
+    zero = math.degrees(float(np.angle(z.mean()))) / 2.0
+    dev = (rel - zero + 90.0) % 180.0 - 90.0
+    return np.where(ok, rb + dev - float(np.nanmean(dev)), rb)
