@@ -52,9 +52,32 @@ class ProcedureConfig(Strict):
         "per-axis systematic standard uncertainty of the offset (bearing error motion, "
         "scale), added to the statistical part"))
     correction_axes: tuple[str, str] = ("x", "y")
+    turntable_direction: Literal[1, -1] = Field(1, description=(
+        "+1: a positive turntable angle turns the top image as R(a) of the design notes "
+        "(counter-clockwise on screen, y down); -1: the other way round. A valid commission "
+        "record's measured direction takes precedence"))
     pixel_size_tolerance: float = Field(0.15, gt=0, lt=1,
                                         description="accepted calibration/config disagreement")
     precheck: PrecheckConfig = PrecheckConfig()
+
+
+class CommissionConfig(Strict):
+    """How ``alignctl commission`` measures the rig (once per rig and after a rebuild)."""
+
+    sweep_deg: float = Field(360.0, ge=30, le=360, description=(
+        "total turntable span of the runout sweep, centred on 0 (a full turn where the "
+        "cables allow; clipped to the turntable's soft limits)"))
+    step_deg: float = Field(5.0, ge=0.5, le=30, description="angle step of that sweep")
+    stage_step_mm: float = Field(0.5, gt=0, le=5, description=(
+        "length of the there-and-back moves of each translation axis"))
+    repeats: int = Field(3, ge=2, le=10, description=(
+        "there-and-back moves per axis (backlash and repeatability)"))
+    pixel_size_warn: float = Field(0.05, gt=0, lt=1, description=(
+        "relative disagreement of the measured and configured pixel size that warns"))
+    pixel_size_fail: float = Field(0.10, gt=0, lt=1, description="... and that fails")
+    holder_size_warn: float = Field(0.015, gt=0, lt=1, description=(
+        "relative disagreement of the measured and configured holder size that warns"))
+    holder_size_fail: float = Field(0.04, gt=0, lt=1, description="... and that fails")
 
 
 class DaemonConfig(Strict):
@@ -74,6 +97,7 @@ class AligndConfig(Strict):
     cameras: list[CameraConfig] = Field(..., min_length=1)
     holder: HolderConfig = HolderConfig()
     procedure: ProcedureConfig = ProcedureConfig()
+    commission: CommissionConfig = CommissionConfig()
     daemon: DaemonConfig = DaemonConfig()
     sim: SimConfig | None = None
 

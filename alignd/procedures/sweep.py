@@ -22,9 +22,11 @@ import numpy as np
 
 from alignd.config import AligndConfig, HolderConfig
 from alignd.errors import SolveError, VisionError
+from alignd.procedures.angles import AngleMap, check_sweep_angles
 from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
+from alignd.procedures.runout import RunoutMap
 from alignd.procedures.tools import Tools
 from drivers.camera import Camera, Frame
 from drivers.errors import CameraError
@@ -413,24 +415,39 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
             abort: threading.Event | None, progress: ProgressCallback,
             recorder: RunRecorder, pixel_size_um: float | None,
             pool: CentrePool | None = None, frames_per_step: int = 1,
-            floor_um: float = 0.0, rectify: bool = True) -> tuple[SweepData, Measurement, str]:
-    """Sweep, check the tracking, solve the centre (pooled), locate the target.
+            floor_um: float = 0.0, rectify: bool = True, angle_map: AngleMap | None = None,
+            runout: RunoutMap | None = None,
+            holder: HolderConfig | None = None) -> tuple[SweepData, Measurement, str]:
+    """Sweep, check the tracking and the angles, solve the centre (pooled), locate the target.
 
-    Returns the raw data, the measurement and a warning from the pool ('' if none).
+    ``angle_map`` turns read-back angles into the image convention (config or commission
+    record); the sweep's own images must agree with it (``check_sweep_angles``, which stops
+    the run on a reversed or mis-scaled turntable). ``runout`` (from a commission record)
+    takes the turntable's error motion out of the tracked points before the fit; ``holder``
+    replaces ``cfg.holder`` (a commissioned holder size). Returns the raw data (angles in the
+    image convention), the measurement and a warning from the pool ('' if none).
     """
-    data = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
-                     progress=progress, recorder=recorder, frames_per_step=frames_per_step)
+    amap = angle_map or AngleMap(cfg.procedure.turntable_direction, 1.0, "config")
+    holder = holder or cfg.holder
+    raw = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
+                    progress=progress, recorder=recorder, frames_per_step=frames_per_step)
+    data = dataclasses.replace(raw, readback_deg=amap.image_angles(raw.readback_deg).tolist())
     n_ok = int(data.tracked.sum())
     n = len(data.readback_deg)
-    recorder.sweep(kind, iteration, data.to_json(pixel_size_um), data.commanded_deg,
-                   data.readback_deg)
+    recorder.sweep(kind, iteration, data.to_json(pixel_size_um), raw.commanded_deg,
+                   raw.readback_deg)
     if n_ok < max(3, math.ceil(MIN_TRACKED_FRACTION * n)):
         raise VisionError(f"holder tracked in only {n_ok} of {n} frames of the {kind} sweep "
                           f"(need {max(3, math.ceil(MIN_TRACKED_FRACTION * n))}); no move made")
+    check_sweep_angles(raw.readback_deg, raw.points, amap, kind)
+    if runout is not None and pixel_size_um:
+        # the map is indexed by the read-back angle (as commissioning measured it)
+        data = dataclasses.replace(data, points=runout.correct_px(
+            np.asarray(raw.readback_deg), data.points, pixel_size_um / 1000.0))
     progress(ProgressEvent("solve", f"solving the centre from {n_ok} frames",
                            iteration=iteration))
     t0 = time.perf_counter()
-    P = rectifier(data.points, cfg.holder) if rectify else np.eye(3)
+    P = rectifier(data.points, holder) if rectify else np.eye(3)
     rect = dataclasses.replace(data, points=apply_h(P, data.points))
     try:
         centre = tools.solve(np.asarray(data.readback_deg), rect.points, pixel_size_um)
@@ -443,7 +460,7 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     used: Any = centre
     if pool is not None:
         used, warning = pool.add(centre)
-    m = measure_offset(rect, used, cfg.holder, floor_um)
+    m = measure_offset(rect, used, holder, floor_um)
     m.n_sweeps = int(getattr(used, "n_sweeps", 1))
     m.sweep_centre_px = np.asarray(centre.center_px, float)
     m.p_within = conformance_probability(m.offset_um, m.cov_offset_um2,
