@@ -78,6 +78,10 @@ class CommissionConfig(Strict):
     holder_size_warn: float = Field(0.015, gt=0, lt=1, description=(
         "relative disagreement of the measured and configured holder size that warns"))
     holder_size_fail: float = Field(0.04, gt=0, lt=1, description="... and that fails")
+    rim_radius_mm: float | None = Field(None, gt=0, description=(
+        "outer radius of the turntable's rim (for the top camera's zenith angle)"))
+    top_camera_height_mm: float | None = Field(None, gt=0, description=(
+        "height of the top camera's lens above the turntable (for the zenith angle)"))
 
 
 class DaemonConfig(Strict):
