@@ -16,7 +16,8 @@ the peer's supplementary groups at connect time (``SO_PEERGROUPS``), else the gr
 Endpoints (all JSON unless noted; errors are ``{"error": CODE, "message": TEXT}``):
 ``GET /status``, ``GET /history?limit=N``, ``GET /runs/ID``,
 ``GET /runs/ID/events?after=SEQ&wait=S`` (long-poll for live progress), ``GET /frames/HASH``
-(image/png), ``POST /align`` and ``POST /check`` (body ``{"started_by": "user"|"timer"}``),
+(image/png), ``POST /align``, ``POST /check`` and ``POST /commission`` (body
+``{"started_by": "user"|"timer"}``),
 ``POST /abort``, ``POST /reset`` (reconnect the hardware after a fault).
 """
 
@@ -413,11 +414,12 @@ class ApiServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
                 return HTTPStatus.OK, data
         elif method == "POST":
             actions = {"align": "start an alignment", "check": "start a check",
+                       "commission": "commission the rig",
                        "abort": "abort a run", "reset": "reset the daemon"}
             if len(parts) == 1 and parts[0] in actions:
                 peer = peer_credentials(sock)
                 self.authoriser.require_control(peer, actions[parts[0]])
-                if parts[0] in ("align", "check"):
+                if parts[0] in ("align", "check", "commission"):
                     started_by = body.get("started_by", "user")
                     if not isinstance(started_by, str) or not _STARTED_BY.match(started_by):
                         raise Refused(HTTPStatus.BAD_REQUEST, "bad_request",
@@ -430,7 +432,8 @@ class ApiServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
         else:
             raise Refused(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed",
                           f"method {method} not allowed")
-        known = {"status", "history", "runs", "frames", "align", "check", "abort", "reset"}
+        known = {"status", "history", "runs", "frames", "align", "check", "commission",
+                 "abort", "reset"}
         if parts and parts[0] in known:
             raise Refused(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed",
                           f"{method} {path} is not allowed")

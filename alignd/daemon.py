@@ -49,7 +49,8 @@ log = logging.getLogger(__name__)
 EXIT_OK, EXIT_USAGE, EXIT_FAULT = 0, 2, 3
 DEFAULT_STOP_TIMEOUT_S = 10.0
 EVENT_BUFFER = 5000  # live progress events kept in memory (all runs)
-BUSY_STATES = ("aligning", "checking")
+BUSY_STATES = ("aligning", "checking", "commissioning")
+RUN_STATES = {"align": "aligning", "check": "checking", "commission": "commissioning"}
 
 Procedure = Callable[..., Any]  # (rig, cfg, *, progress, abort, recorder) -> RunResult
 RigFactory = Callable[[], Any]  # -> alignd.procedures.rig.Rig (connected)
@@ -160,8 +161,9 @@ def _accepts(fn: Callable[..., Any], name: str) -> bool:
 
 def default_procedures() -> dict[str, Procedure]:
     from alignd.procedures.align import run_alignment, run_check
+    from alignd.procedures.commission import run_commission
 
-    return {"align": run_alignment, "check": run_check}
+    return {"align": run_alignment, "check": run_check, "commission": run_commission}
 
 
 class Daemon:
@@ -315,7 +317,11 @@ class Daemon:
             if self._rig is None:
                 raise StateError("the rig is not connected")
             proc = self.procedures[job.kind]
-            extra = {"run_id": str(run_id)} if _accepts(proc, "run_id") else {}
+            extra: dict[str, Any] = {"run_id": str(run_id)} if _accepts(proc, "run_id") \
+                else {}
+            if job.kind in ("align", "check") and _accepts(proc, "commission"):
+                extra["commission"], note = self.commission_record()
+                recorder.event(note)
             raw = proc(self._rig, self.cfg, progress=lambda ev: self._on_progress(run_id, ev),
                        abort=job.abort, recorder=recorder, **extra)
             result, details = _result_dict(raw)
@@ -357,7 +363,9 @@ class Daemon:
             self._current = None
             self._last_run = {"id": run_id, "kind": job.kind, "verdict": verdict,
                               "reason": reason or None}
-            if verdict == "fault":
+            # a run refused by the config (a reversed turntable, a sweep beyond the soft
+            # limits) stopped before anything went wrong with the hardware: stay idle
+            if verdict == "fault" and not result.get("config_error"):
                 self._state, self._fault = "fault", reason or "fault"
             else:
                 self._state, self._fault = "idle", None
@@ -406,8 +414,46 @@ class Daemon:
         self._status_sent = now
         self.notifier.status(status_line(self.status()))
 
+    # ---- commissioning -----------------------------------------------------------------
+    def commission_record(self) -> tuple[Any, str]:
+        """The latest valid commission record (or None) and a sentence saying which/why not.
+
+        Valid: the newest finished commission run, verdict ``commissioned``, made with this
+        config (hash) and these devices (models and serial numbers)."""
+        from alignd.procedures.commission import CommissionRecord
+
+        last = self.store.latest_run("commission")
+        if last is None:
+            return None, ("no commission record: using the config's conventions (run "
+                          "'alignctl commission' once per rig)")
+        try:
+            rec = CommissionRecord.from_json(last["result"] or {})
+        except ValueError as exc:
+            return None, f"commission run {last['id']} unusable ({exc}): using the config"
+        why = rec.valid_for(self.config_hash, self._devices)
+        if why:
+            return None, (f"commission run {last['id']} ({last['ended_at']}) not used: {why}; "
+                          "using the config's conventions (run 'alignctl commission' again)")
+        amp = rec.runout.amplitude_um if rec.runout is not None else None
+        return rec, (f"using commission run {last['id']} ({last['ended_at']}): turntable "
+                     f"direction {rec.turntable_sign:+d}, angle scale {rec.angle_scale:.5f}, "
+                     f"pixel size {rec.pixel_size_um:.2f} um/px"
+                     + (f", runout map {amp:.1f} um peak" if amp is not None else ""))
+
+    def _commission_status(self) -> dict[str, Any] | None:
+        last = self.store.latest_run("commission")
+        if last is None:
+            return None
+        rec, note = self.commission_record()
+        return {"run_id": last["id"], "ended_at": last["ended_at"],
+                "verdict": last["verdict"], "valid": rec is not None, "note": note}
+
     # ---- the API's Controller -------------------------------------------------------
     def status(self) -> dict[str, Any]:
+        try:
+            commission = self._commission_status()
+        except AligndError as exc:  # the history is unreadable: say so, keep the status
+            commission = {"valid": False, "note": f"commission record unreadable: {exc}"}
         with self._lock:
             job = self._current
             return {
@@ -420,6 +466,7 @@ class Daemon:
                 "config_hash": self.config_hash, "devices": self._devices,
                 "pid": os.getpid(), "uptime_s": round(time.monotonic() - self._started_at, 1),
                 "state_dir": str(self.store.state_dir), "socket": self.socket_path,
+                "commission": commission,
             }
 
     def history(self, limit: int) -> list[dict[str, Any]]:
@@ -491,7 +538,7 @@ class Daemon:
             job = _Job(kind=kind, run_id=run_id, started_by=started_by, user=peer.user)
             self._current = job
             self._progress = None
-            self._state = "aligning" if kind == "align" else "checking"
+            self._state = RUN_STATES.get(kind, "checking")
             self._cond.notify_all()
         log.info("run %d (%s) requested by %s as %s", run_id, kind, peer.describe(), started_by)
         self._jobs.put(job)

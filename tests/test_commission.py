@@ -123,3 +123,39 @@ def test_each_deliberate_difference_is_found_and_named(world: dict[str, object],
         assert rec.verdict == "failed" and item in rec.reason
     # everything else still measured: one finding per item, no fault
     assert rec.verdict != "fault", rec.reason
+
+
+def test_daemon_commission_record_is_used_by_align(capsys: pytest.CaptureFixture[str]) -> None:
+    """The daemon on a rig whose turntable turns the other way round: align stops naming it;
+    commission records the direction; status shows the record; align then uses it."""
+    import json
+    from functools import partial
+
+    from daemon_fakes import make_env, wait_until
+
+    from alignd.cli import main as alignctl
+    from alignd.procedures import run_alignment
+
+    world_cfg = with_world(sim_config(), turntable_direction=-1)
+    rig, world = scene_rig(world_cfg, 4)
+    tools = image_order_tools(4)
+    procs = {"align": partial(run_alignment, tools=tools),
+             "commission": partial(run_commission, tools=tools)}
+    for env in make_env(procs, rig_factory=lambda: rig):
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        assert alignctl(["--socket", env.sock, "align", "--json", "-q"]) == 2
+        out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert "turntable reversed" in out["reason"]
+        assert alignctl(["--socket", env.sock, "commission", "-q"]) == 0
+        text = capsys.readouterr().out
+        assert "run 2: commissioned" in text
+        assert "WARN  turntable.direction" in text and "reversed" in text
+        assert alignctl(["--socket", env.sock, "status"]) == 0
+        assert "commission: using commission run 2" in capsys.readouterr().out
+        assert alignctl(["--socket", env.sock, "align", "--json", "-q"]) == 0
+        out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert out["verdict"] == "aligned"
+        assert out["truth"]["offset_norm_um"] <= 10.0
+        run = env.client.run(3)
+        assert any("using commission run 2" in e["msg"] for e in run["events"])
+        assert run["details"]["conventions"]["turntable_direction"] == -1

@@ -25,7 +25,9 @@ import numpy as np
 
 from alignd.config import AligndConfig
 from alignd.errors import AligndError, ConfigError, DeviceError, StateError, VisionError
+from alignd.procedures.angles import AngleMap
 from alignd.procedures.calibrate import Calibration, calibrate, configured_pixel_size_um
+from alignd.procedures.commission import CommissionRecord
 from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progress
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.result import RunResult
@@ -77,24 +79,31 @@ def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | N
                   abort: threading.Event | None = None, recorder: RunRecorder | None = None,
                   tools: Tools | None = None, run_id: str | None = None,
                   frames_per_step: int | None = None,
-                  systematic_um: float | None = None) -> RunResult:
-    """Align the sample's target point onto the rotation axis (see the module docstring)."""
+                  systematic_um: float | None = None,
+                  commission: CommissionRecord | None = None) -> RunResult:
+    """Align the sample's target point onto the rotation axis (see the module docstring).
+
+    ``commission``: a valid commission record (the daemon passes the latest one): its
+    measured turntable direction and angle scale replace the config's, its runout map is
+    subtracted from every sweep."""
     return _Run(rig, cfg, "align", progress, abort, recorder, tools, run_id,
-                frames_per_step, systematic_um).execute()
+                frames_per_step, systematic_um, commission).execute()
 
 
 def run_check(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
               abort: threading.Event | None = None, recorder: RunRecorder | None = None,
               tools: Tools | None = None, run_id: str | None = None,
               frames_per_step: int | None = None,
-                  systematic_um: float | None = None) -> RunResult:
+              systematic_um: float | None = None,
+              commission: CommissionRecord | None = None) -> RunResult:
     """Measure the offset against the tolerance; no translation stage moves.
 
     Sweeps (pooling the centre) until the offset is shown within or beyond the tolerance
-    with 95 % confidence, at most ``procedure.max_iterations`` sweeps.
+    with 95 % confidence, at most ``procedure.max_iterations`` sweeps. ``commission`` as
+    for ``run_alignment``.
     """
     return _Run(rig, cfg, "check", progress, abort, recorder, tools, run_id,
-                frames_per_step, systematic_um).execute()
+                frames_per_step, systematic_um, commission).execute()
 
 
 def within(m: Measurement) -> bool:
@@ -112,7 +121,8 @@ class _Run:
                  progress: ProgressCallback | None, abort: threading.Event | None,
                  recorder: RunRecorder | None, tools: Tools | None,
                  run_id: str | None, frames_per_step: int | None = None,
-                 systematic_um: float | None = None) -> None:
+                 systematic_um: float | None = None,
+                 commission: CommissionRecord | None = None) -> None:
         self.rig = rig
         self.cfg = cfg
         self.mode = mode
@@ -129,6 +139,11 @@ class _Run:
         self.systematic_um = (cfg.procedure.systematic_um if systematic_um is None
                               else systematic_um)
         self.pool = CentrePool()
+        self.commission = commission
+        if commission is not None:
+            self.angle_map = commission.angle_map(f"commission run {commission.run_id}")
+        else:
+            self.angle_map = AngleMap(cfg.procedure.turntable_direction, 1.0, "config")
 
     # ---- top level -------------------------------------------------------------------
     def execute(self) -> RunResult:
@@ -193,6 +208,11 @@ class _Run:
             "final": None if final is None else final.to_dict(),
             "compute_s": self.st.compute_s, "motion_s": self.st.motion_s,
             "tools": (self.tools.names if self.tools else None),
+            "conventions": {"source": self.angle_map.source,
+                            "turntable_direction": self.angle_map.sign,
+                            "angle_scale": self.angle_map.scale,
+                            "runout": self.commission is not None
+                            and self.commission.runout is not None},
         }
         level = logging.INFO if result.ok else logging.WARNING
         log.log(level, "%s run %s: %s %s", self.mode, self.run_id, verdict, reason)
@@ -232,7 +252,8 @@ class _Run:
             self.rig, self.cfg, self.tools, kind=kind, iteration=iteration, abort=self.abort,
             progress=self._progress_safe, recorder=self.recorder, pixel_size_um=px,
             pool=self.pool, frames_per_step=self.frames_per_step,
-            floor_um=self.systematic_um)
+            floor_um=self.systematic_um, angle_map=self.angle_map,
+            runout=None if self.commission is None else self.commission.runout)
         if warning:
             self._warn(warning)
         self.st.compute_s += m.compute_s

@@ -39,8 +39,7 @@ from typing import Any, Literal
 import numpy as np
 
 from alignd.config import AligndConfig, config_hash
-from alignd.errors import AligndError, ConfigError, DeviceError, SolveError, StateError, \
-    VisionError
+from alignd.errors import AligndError, ConfigError, DeviceError, SolveError, StateError, VisionError
 from alignd.procedures.angles import AngleMap, fit_slope, holder_image_angles
 from alignd.procedures.calibrate import configured_pixel_size_um
 from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progress
@@ -691,7 +690,7 @@ class _Commission:
         if self.c.sweep_deg >= 360.0 and hi - lo >= 360.0:
             angles = np.arange(lo, lo + 360.0 - step / 2, step)
         else:
-            n = max(int(round((hi - lo) / step)) + 1, 3)
+            n = max(round((hi - lo) / step) + 1, 3)
             angles = np.linspace(lo, hi, n)
         if ax.config.approach == "-":
             angles = angles[::-1]
@@ -731,17 +730,20 @@ class _Commission:
                               expected=conf_sign))
         else:
             self._add(Finding(
-                "turntable.direction", "fail",
+                "turntable.direction", "warn",
                 f"reversed: a positive turntable angle turns the image the other way round "
                 f"(slope {fit.slope:+.5f} ± {fit.sigma:.5f}; config procedure."
-                f"turntable_direction {conf_sign:+d}), or the top camera is mirrored: set "
-                f"procedure.turntable_direction: {sign:+d}",
+                f"turntable_direction {conf_sign:+d}), or the top camera is mirrored; align "
+                "and check use the measured direction while this record is valid; to make "
+                f"the config say so, set procedure.turntable_direction: {sign:+d}",
                 value=sign, expected=conf_sign, name="reversed",
                 config_fix={"procedure.turntable_direction": sign}))
         dev = fit.scale - 1.0
         bound = max(ANGLE_SCALE_WARN, 4 * fit.sigma)
+        # compensated while the record is valid (a warning); beyond 10 % it is no scale
+        # error but a wrong axis or stage
         verdict: FindingVerdict = "pass" if abs(dev) <= bound else (
-            "warn" if abs(dev) <= 5 * bound else "fail")
+            "warn" if abs(dev) <= 0.1 else "fail")
         self._add(Finding(
             "turntable.angle_scale", verdict,
             f"{fit.scale:.5f} ± {fit.sigma:.5f} table degrees per read-back degree "
