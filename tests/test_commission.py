@@ -137,7 +137,7 @@ def test_daemon_commission_record_is_used_by_align(capsys: pytest.CaptureFixture
     from alignd.procedures import run_alignment
 
     world_cfg = with_world(sim_config(), turntable_direction=-1)
-    rig, world = scene_rig(world_cfg, 4)
+    rig, _world = scene_rig(world_cfg, 4)
     tools = image_order_tools(4)
     procs = {"align": partial(run_alignment, tools=tools),
              "commission": partial(run_commission, tools=tools)}

@@ -153,7 +153,7 @@ def commission_text(result: dict[str, Any]) -> str:
         if not isinstance(f, dict):
             continue
         mark = {"pass": "pass", "warn": "WARN", "fail": "FAIL"}.get(str(f.get("verdict")), "?")
-        lines.append(f"  {mark:4s}  {str(f.get('item')):26s} {f.get('message', '')}")
+        lines.append(f"  {mark:4s}  {f.get('item')!s:26s} {f.get('message', '')}")
     return "\n".join(lines)
 
 
