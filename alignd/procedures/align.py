@@ -142,6 +142,12 @@ class _Run:
         self.commission = commission
         if commission is not None:
             self.angle_map = commission.angle_map(f"commission run {commission.run_id}")
+            if commission.runout is not None and systematic_um is None:
+                # the bearing's error motion is subtracted: what stays systematic is the
+                # map's own error, below its per-frame residual (1 sigma), and never taken
+                # below 1 um (perspective, the encoder's periodic error)
+                self.systematic_um = min(self.systematic_um,
+                                         max(1.0, commission.runout.residual_um))
         else:
             self.angle_map = AngleMap(cfg.procedure.turntable_direction, 1.0, "config")
 

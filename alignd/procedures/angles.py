@@ -72,6 +72,26 @@ def holder_image_angles(points: np.ndarray) -> np.ndarray:
     return out
 
 
+def consistent_order(points: np.ndarray, ref: int) -> np.ndarray:
+    """The corners of every frame in the cyclic order of frame ``ref``, followed frame by
+    frame outwards from it (a tracker restarts its order when the holder turns far; the
+    holder frame of the config is the order at turntable 0). Steps between frames must
+    move a corner less than half the holder's shorter side."""
+    p = np.asarray(points, float).copy()
+    n = len(p)
+    for direction in (1, -1):
+        prev = p[ref]
+        i = ref + direction
+        while 0 <= i < n:
+            if np.all(np.isfinite(p[i])) and np.all(np.isfinite(prev)):
+                costs = [float(np.linalg.norm(np.roll(p[i], -k, axis=0) - prev, axis=1).sum())
+                         for k in range(4)]
+                p[i] = np.roll(p[i], -int(np.argmin(costs)), axis=0)
+                prev = p[i]
+            i += direction
+    return p
+
+
 def fit_slope(angles_deg: np.ndarray, image_deg: np.ndarray) -> AngleSlope:
     """Straight-line fit of the image angle against the (read-back) angle."""
     a = np.asarray(angles_deg, float)

@@ -40,13 +40,13 @@ import numpy as np
 
 from alignd.config import AligndConfig, config_hash
 from alignd.errors import AligndError, ConfigError, DeviceError, SolveError, StateError, VisionError
-from alignd.procedures.angles import AngleMap, fit_slope, holder_image_angles
+from alignd.procedures.angles import AngleMap, consistent_order, fit_slope, holder_image_angles
 from alignd.procedures.calibrate import configured_pixel_size_um
 from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progress
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
 from alignd.procedures.runout import RunoutMap, fit_runout
-from alignd.procedures.sweep import grab_fresh, rot
+from alignd.procedures.sweep import apply_h, grab_fresh, rectifier, rot
 from alignd.procedures.tools import Tools, default_tools
 
 log = logging.getLogger(__name__)
@@ -754,7 +754,12 @@ class _Commission:
             value=fit.scale, sigma=fit.sigma, expected=1.0, name="" if verdict == "pass"
             else "mis-scaled"))
         px_mm = (self.rec.pixel_size_um or 1.0) / 1000.0
-        centres = points.mean(axis=1)
+        # perspective first (as every sweep does): a tilted camera images the holder's circle
+        # as an ellipse, a harmonic-2 motion that is no part of the bearing's
+        tracked = np.flatnonzero(ok)
+        ref = int(tracked[np.argmin(np.abs(rb[tracked]))])
+        ordered = consistent_order(points, ref)
+        centres = apply_h(rectifier(ordered, self.cfg.holder), ordered).mean(axis=1)
         # the runout map and the axis, in the scale's own angles
         try:
             rmap = fit_runout(rb * fit.scale, centres, px_mm, sign=sign)

@@ -12,10 +12,11 @@ The model, for a point carried by the turntable (the holder's centre) seen at an
 with ``c`` the mean axis, ``p`` the point's arm, ``s`` = +1 or -1 the turning sense in the
 image, and ``w`` the error motion, written as a Fourier series of harmonics 2..K (harmonics
 0 and 1 are the axis and the arm: no measurement on one point separates them from ``w``).
-All terms are linear in the unknowns, so one least-squares solve gives everything. On a
-sweep shorter than a full turn the harmonics are no longer orthogonal to the rigid terms;
-the map is then what is left after the best rigid fit over the swept range (the part that
-would bias a centre fit on that range), which is what is projected out below.
+All terms are linear in the unknowns, so one least-squares solve gives everything. Over most
+of a turn (``WELL_SEPARATED_DEG``) the harmonics stay nearly orthogonal to the rigid terms
+and the fitted series is the error motion; on a short sweep they are not, and the map is
+what is left after the best rigid fit over the swept range (the part that would bias a
+centre fit on that range).
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ import numpy as np
 from alignd.errors import SolveError
 
 DEFAULT_HARMONICS = (2, 3, 4, 5)
+# over at least this span the harmonics separate from the rigid terms (nearly orthogonal):
+# the fitted series is the error motion itself, harmonics 0 and 1 excluded
+WELL_SEPARATED_DEG = 270.0
 
 
 def _rigid_columns(a_rad: np.ndarray, sign: int) -> np.ndarray:
@@ -176,9 +180,10 @@ def fit_runout(angles_deg: np.ndarray, centres_px: np.ndarray, pixel_size_mm: fl
     dof = max(len(y) - np.linalg.matrix_rank(A), 1)
     resid = y - fit
     residual_mm = math.sqrt(float(resid @ resid) / dof)
-    # the map: the harmonic part with whatever a rigid fit over this range would absorb
-    # taken out (nothing on a full turn, by orthogonality)
     w = H @ sol[4:] if H.shape[1] else np.zeros_like(y)
-    coef, *_ = np.linalg.lstsq(R, w, rcond=None)
-    w = w - R @ coef
+    if span < WELL_SEPARATED_DEG:
+        # a short sweep cannot tell the harmonics from the axis and the arm: the map is
+        # what a rigid fit over this range leaves (what would bias a centre fit on it)
+        coef, *_ = np.linalg.lstsq(R, w, rcond=None)
+        w = w - R @ coef
     return RunoutMap(a, w.reshape(-1, 2), residual_mm * 1000.0)
