@@ -188,3 +188,37 @@ def load_config(path: str | Path) -> AligndConfig:
 def config_hash(cfg: AligndConfig) -> str:
     """SHA-256 of the canonical JSON of the validated config (kept with every run)."""
     return hashlib.sha256(cfg.model_dump_json().encode()).hexdigest()
+
+
+def check_config_file(path: str | Path) -> tuple[AligndConfig, list[str]]:
+    """Validate a config without touching hardware: the model's checks (``ConfigError``)
+    plus what can only be judged together, returned as warnings."""
+    cfg = load_config(path)
+    notes: list[str] = []
+    tc, i = cfg.axis("turntable")
+    lim = tc.axes[i].soft_limits
+    p = cfg.procedure
+    if not (lim.min <= -p.sweep_deg and p.sweep_deg <= lim.max):
+        raise ConfigError(f"{path}: procedure.sweep_deg {p.sweep_deg:g} exceeds the "
+                          f"turntable soft limits [{lim.min:g}, {lim.max:g}]")
+    half = cfg.commission.sweep_deg / 2
+    if -half < lim.min or half > lim.max:
+        notes.append(f"commission.sweep_deg {cfg.commission.sweep_deg:g} will be clipped to "
+                     f"the turntable soft limits [{lim.min:g}, {lim.max:g}]")
+    for c in cfg.controllers:
+        if c.port.startswith("/dev/") and not Path(c.port).exists():
+            notes.append(f"controllers.{c.name}.port {c.port} does not exist now (device "
+                         "unplugged, or a udev rule missing?)")
+    for cam in cfg.cameras:
+        if cam.source.startswith("/dev/") and not Path(cam.source).exists():
+            notes.append(f"cameras.{cam.role}.source {cam.source} does not exist now")
+        if cam.role == "top" and cam.pixel_size_um is None:
+            notes.append("cameras.top.pixel_size_um is not set: calibration cannot check "
+                         "the image scale (alignctl commission measures it)")
+    tu, tv = cfg.holder.target_mm
+    su, sv = cfg.holder.size_mm
+    if abs(tu) <= su / 2 and abs(tv) <= sv / 2:
+        notes.append(f"holder.target_mm {cfg.holder.target_mm} lies inside the holder "
+                     f"({su:g} x {sv:g} mm): the target is the middle of the sample's "
+                     "surface, outside the holder's top face")
+    return cfg, notes

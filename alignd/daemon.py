@@ -40,7 +40,13 @@ from typing import Any
 from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
 from alignd.client import resolve_socket
-from alignd.config import AligndConfig, config_hash, frame_keeper, load_config
+from alignd.config import (
+    AligndConfig,
+    check_config_file,
+    config_hash,
+    frame_keeper,
+    load_config,
+)
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
 
@@ -640,7 +646,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="alignd", description="The alignment daemon (runs in the "
                                 "foreground; systemd runs it the same way).")
     p.add_argument("--version", action="version", version=f"alignd {__version__}")
-    p.add_argument("--config", required=True, help="instrument config (YAML)")
+    p.add_argument("--config", help="instrument config (YAML)")
+    p.add_argument("--check-config", metavar="FILE", help="validate a config without "
+                   "touching hardware and exit (0 valid, 2 invalid)")
+    p.add_argument("--config-reference", action="store_true",
+                   help="print the config reference (Markdown) and exit")
+    p.add_argument("--config-schema", action="store_true",
+                   help="print the config's JSON Schema (for editors) and exit")
     p.add_argument("--socket", help="control socket (default: $ALIGND_SOCKET, else the "
                    "config's daemon.socket)")
     p.add_argument("--state-dir", help="database, frames (default: $STATE_DIRECTORY, else "
@@ -655,7 +667,29 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = None,
          procedures: Mapping[str, Procedure] | None = None) -> int:
     """Run the daemon until SIGTERM/SIGINT. ``rig_factory``/``procedures`` are for tests."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.config_reference or args.config_schema:
+        from alignd.config_doc import json_schema, reference_markdown
+
+        sys.stdout.write(reference_markdown() if args.config_reference else json_schema())
+        return EXIT_OK
+    if args.check_config:
+        try:
+            cfg, notes = check_config_file(args.check_config)
+        except ConfigError as exc:
+            print(f"alignd: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        for n in notes:
+            print(f"warning: {n}")
+        roles = ", ".join(f"{a.role} ({c.protocol} on {c.port})" for c in cfg.controllers
+                          for a in c.axes)
+        print(f"{args.check_config}: valid ({cfg.name}; {roles}; cameras "
+              f"{', '.join(f'{c.role} {c.source}' for c in cfg.cameras)}; config hash "
+              f"{config_hash(cfg)[:12]})")
+        return EXIT_OK
+    if not args.config:
+        parser.error("--config FILE is required (or --check-config FILE)")
     logging.basicConfig(level=[logging.INFO, logging.DEBUG][min(args.verbose, 1)],
                         stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     try:
