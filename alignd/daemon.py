@@ -682,11 +682,13 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
             return EXIT_USAGE
         for n in notes:
             print(f"warning: {n}")
-        roles = ", ".join(f"{a.role} ({c.protocol} on {c.port})" for c in cfg.controllers
-                          for a in c.axes)
-        print(f"{args.check_config}: valid ({cfg.name}; {roles}; cameras "
-              f"{', '.join(f'{c.role} {c.source}' for c in cfg.cameras)}; config hash "
-              f"{config_hash(cfg)[:12]})")
+        print(f"{args.check_config}: valid ({cfg.name}, config hash {config_hash(cfg)[:12]})")
+        for c in cfg.controllers:
+            print(f"  {c.name}: {c.protocol} on {c.port}: "
+                  + ", ".join(f"{a.role} (address {a.address}, {a.stage or 'no stage'})"
+                              for a in c.axes))
+        for cam in cfg.cameras:
+            print(f"  camera {cam.role}: {cam.source}")
         return EXIT_OK
     if not args.config:
         parser.error("--config FILE is required (or --check-config FILE)")

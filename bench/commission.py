@@ -284,16 +284,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="3 variants and the wrong configs")
     ap.add_argument("--tracker", choices=["standin", "vision"], default="standin")
     ap.add_argument("--seed0", type=int, default=100)
+    ap.add_argument("--frames-per-step", type=int, default=1,
+                    help="procedure.frames_per_step of every variant's config")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
     base = load_config(ROOT / "configs" / "sim.yaml")
     n = 3 if args.quick else args.variants
     tol = base.procedure.tolerance_um
     t_start = time.perf_counter()
-    print(f"commission bench: {n} variants, tracker={args.tracker}, tolerance {tol:g} um")
+    print(f"commission bench: {n} variants, tracker={args.tracker}, tolerance {tol:g} um, "
+          f"frames per sweep step {args.frames_per_step}")
     print(f"{'seed':>4}  {'variant':<66} {'rounds':>6} {'iter':>4} {'true um':>8} "
           f"{'verdict':>9}  findings")
     rows = []
+    if args.frames_per_step != 1:
+        base = base.model_copy(update={"procedure": base.procedure.model_copy(
+            update={"frames_per_step": args.frames_per_step})})
     for i in range(n):
         v = draw_variant(args.seed0 + i)
         r = run_variant(base, v, args.tracker)

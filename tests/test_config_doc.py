@@ -49,6 +49,9 @@ def test_check_config_accepts_the_reference_and_names_a_bad_key(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert daemon_mod.main(["--check-config", str(REPO / "configs" / "sim.yaml")]) == 0
     assert "valid (reference-sim" in capsys.readouterr().out
+    for example in sorted((REPO / "configs" / "examples").glob("*.yaml")):
+        assert daemon_mod.main(["--check-config", str(example)]) == 0, example
+        assert "valid (" in capsys.readouterr().out
     bad = tmp_path / "bad.yaml"
     bad.write_text((REPO / "configs" / "sim.yaml").read_text().replace(
         "  step_deg: 5.0", "  step_deg: 50.0"))

@@ -20,14 +20,70 @@ from alignd.errors import ConfigError
 
 @dataclass(frozen=True)
 class AngleMap:
-    """How read-back angles become image angles: ``image = sign * scale * readback``."""
+    """How read-back angles become image angles:
+    ``image = sign * (scale * readback + error(readback))``, where ``error`` is the encoder's
+    periodic error, a sum of harmonics (h, cos and sin amplitudes in degrees) measured by
+    commissioning (none from the config)."""
 
     sign: int = 1
     scale: float = 1.0
     source: str = "config"  # "config" or "commission <run id>"
+    error: tuple[tuple[int, float, float], ...] = ()
+
+    def error_deg(self, readback_deg: np.ndarray | list[float]) -> np.ndarray:
+        a = np.radians(np.asarray(readback_deg, float))
+        out = np.zeros_like(a)
+        for h, c, d in self.error:
+            out += c * np.cos(h * a) + d * np.sin(h * a)
+        return out
 
     def image_angles(self, readback_deg: np.ndarray | list[float]) -> np.ndarray:
-        return self.sign * self.scale * np.asarray(readback_deg, float)
+        rb = np.asarray(readback_deg, float)
+        return self.sign * (self.scale * rb + self.error_deg(rb))
+
+
+@dataclass(frozen=True)
+class AngleErrorFit:
+    """Image angle against read-back over a wide sweep: scale and periodic error."""
+
+    scale: float
+    scale_sigma: float
+    error: tuple[tuple[int, float, float], ...]  # significant harmonics only
+    peak_deg: float  # largest periodic error over the swept angles
+    sigma_deg: float  # per-frame residual
+
+
+def fit_angle_error(readback_deg: np.ndarray, image_deg: np.ndarray, sign: int,
+                    harmonics: tuple[int, ...] = (1, 2, 3, 4), min_snr: float = 3.0
+                    ) -> AngleErrorFit:
+    """``sign * image = b + scale * a + sum_h (c_h cos ha + d_h sin ha)`` by least squares;
+    a harmonic is kept when its amplitude exceeds ``min_snr`` times its uncertainty (an
+    insignificant one would add its noise to every later sweep)."""
+    a = np.asarray(readback_deg, float)
+    y = sign * np.asarray(image_deg, float)
+    ok = np.isfinite(a) & np.isfinite(y)
+    a, y = a[ok], y[ok]
+    ar = np.radians(a)
+    cols = [np.ones_like(a), a - a.mean()]
+    for h in harmonics:
+        cols += [np.cos(h * ar), np.sin(h * ar)]
+    A = np.column_stack(cols)
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    res = y - A @ coef
+    dof = max(len(y) - A.shape[1], 1)
+    s2 = float(res @ res) / dof
+    cov = s2 * np.linalg.pinv(A.T @ A)
+    kept = []
+    for i, h in enumerate(harmonics):
+        c, d = float(coef[2 + 2 * i]), float(coef[3 + 2 * i])
+        sig = math.sqrt(max(cov[2 + 2 * i, 2 + 2 * i] + cov[3 + 2 * i, 3 + 2 * i], 0.0) / 2)
+        if math.hypot(c, d) > min_snr * max(sig, 1e-12):
+            kept.append((h, c, d))
+    amap = AngleMap(1, 1.0, "fit", tuple(kept))
+    grid = np.linspace(a.min(), a.max(), 721)
+    peak = float(np.abs(amap.error_deg(grid)).max()) if kept else 0.0
+    return AngleErrorFit(float(coef[1]), math.sqrt(max(cov[1, 1], 0.0)), tuple(kept), peak,
+                         math.sqrt(s2))
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,13 @@ import numpy as np
 
 from alignd.config import AligndConfig, config_hash
 from alignd.errors import AligndError, ConfigError, DeviceError, SolveError, StateError, VisionError
-from alignd.procedures.angles import AngleMap, consistent_order, fit_slope, holder_image_angles
+from alignd.procedures.angles import (
+    AngleMap,
+    consistent_order,
+    fit_angle_error,
+    fit_slope,
+    holder_image_angles,
+)
 from alignd.procedures.calibrate import configured_pixel_size_um
 from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progress
 from alignd.procedures.recorder import NullRecorder, RunRecorder
@@ -56,7 +62,8 @@ CommissionVerdict = Literal["commissioned", "failed", "aborted", "fault"]
 COMMISSION_EXIT: dict[str, int] = {"commissioned": 0, "failed": 1, "aborted": 1, "fault": 3}
 
 FRAMES_PER_POSE = 2
-ANGLE_SCALE_WARN = 0.002  # relative angle-scale error that warns (and fails at 5x)
+ANGLE_SCALE_WARN = 0.002  # relative angle-scale error that warns
+ANGLE_ERROR_WARN_DEG = 0.01  # periodic encoder error that warns
 ROLE_CONE_DEG = 30.0  # a role moving within this of an axis of the holder frame "moves along" it
 SECOND_ANGLE_DEG = 90.0
 MAX_TURN_DISAGREE_DEG = 1.0  # stage directions at two table angles, turned back, must agree
@@ -142,6 +149,7 @@ class CommissionRecord:
     findings: list[Finding] = field(default_factory=list)
     turntable_sign: int | None = None
     angle_scale: float | None = None
+    angle_error: tuple[tuple[int, float, float], ...] = ()  # periodic encoder error
     pixel_size_um: float | None = None  # at the holder's face
     holder_size_mm: tuple[float, float] | None = None
     runout: RunoutMap | None = None
@@ -166,7 +174,8 @@ class CommissionRecord:
         return next((f for f in self.findings if f.item == item), None)
 
     def angle_map(self, label: str) -> AngleMap:
-        return AngleMap(self.turntable_sign or 1, self.angle_scale or 1.0, label)
+        return AngleMap(self.turntable_sign or 1, self.angle_scale or 1.0, label,
+                        self.angle_error)
 
     def to_json(self) -> dict[str, Any]:
         counts = {v: sum(f.verdict == v for f in self.findings) for v in ("pass", "warn", "fail")}
@@ -176,6 +185,7 @@ class CommissionRecord:
             "findings": [f.to_json() for f in self.findings],
             "conventions": _plain({
                 "turntable_direction": self.turntable_sign, "angle_scale": self.angle_scale,
+                "angle_error_harmonics": [list(e) for e in self.angle_error],
                 "pixel_size_um": self.pixel_size_um, "holder_size_mm": self.holder_size_mm,
                 "axes": {r: a.to_json() for r, a in self.axes.items()}}),
             "runout": None if self.runout is None else self.runout.to_json(),
@@ -198,6 +208,8 @@ class CommissionRecord:
                       findings=[Finding(**f) for f in d.get("findings", [])],
                       turntable_sign=conv.get("turntable_direction"),
                       angle_scale=conv.get("angle_scale"),
+                      angle_error=tuple((int(h), float(c), float(d)) for h, c, d in
+                                        conv.get("angle_error_harmonics") or []),
                       pixel_size_um=conv.get("pixel_size_um"),
                       holder_size_mm=None if hs is None else (float(hs[0]), float(hs[1])),
                       runout=None if d.get("runout") is None
@@ -718,7 +730,15 @@ class _Commission:
         if ok.sum() < max(8, 0.6 * len(rb)):
             raise VisionError(f"holder tracked in only {int(ok.sum())} of {len(rb)} frames of "
                               "the commission sweep")
-        fit = fit_slope(rb, holder_image_angles(points))
+        # perspective first (as every sweep does): a tilted camera images the holder's circle
+        # as an ellipse (a harmonic-2 motion that is no part of the bearing's) and its edges
+        # turned by a little more or less than the table (no part of the encoder's error)
+        tracked = np.flatnonzero(ok)
+        ref = int(tracked[np.argmin(np.abs(rb[tracked]))])
+        ordered = consistent_order(points, ref)
+        rectified = apply_h(rectifier(ordered, self.cfg.holder), ordered)
+        img_deg = holder_image_angles(rectified)
+        fit = fit_slope(rb, img_deg)
         sign = fit.sign
         conf_sign = self.cfg.procedure.turntable_direction
         self.rec.turntable_sign = sign
@@ -753,17 +773,30 @@ class _Commission:
                "scale while this record is valid"),
             value=fit.scale, sigma=fit.sigma, expected=1.0, name="" if verdict == "pass"
             else "mis-scaled"))
+        # the encoder's periodic error: the image angle's wiggle about the straight line
+        if float(np.ptp(rb)) >= 90.0:
+            err = fit_angle_error(rb, img_deg, sign)
+            self.rec.angle_error = err.error
+            self.rec.angle_scale = err.scale
+            verdict = "pass" if err.peak_deg <= ANGLE_ERROR_WARN_DEG else "warn"
+            self._add(Finding(
+                "turntable.angle_error", verdict,
+                f"periodic angle error {err.peak_deg:.4f} deg peak (harmonics "
+                f"{', '.join(str(h) for h, _c, _d in err.error) or 'none significant'}; "
+                f"{err.sigma_deg:.4f} deg per frame); align and check take it out while this "
+                "record is valid", value=err.peak_deg, sigma=err.sigma_deg, unit="deg",
+                name="" if verdict == "pass" else "large angle error"))
         px_mm = (self.rec.pixel_size_um or 1.0) / 1000.0
-        # perspective first (as every sweep does): a tilted camera images the holder's circle
-        # as an ellipse, a harmonic-2 motion that is no part of the bearing's
-        tracked = np.flatnonzero(ok)
-        ref = int(tracked[np.argmin(np.abs(rb[tracked]))])
-        ordered = consistent_order(points, ref)
-        centres = apply_h(rectifier(ordered, self.cfg.holder), ordered).mean(axis=1)
-        # the runout map and the axis, in the scale's own angles
+        centres = rectified.mean(axis=1)
+        # the runout map in the table's true angles (scale and encoder error taken out: an
+        # angle error moves the holder along its circle, which is no error of the bearing),
+        # indexed by the read-back angle as later sweeps look it up
+        true_deg = sign * self.rec.angle_map("commission").image_angles(rb)
+        order = np.argsort(true_deg)
         try:
-            rmap = fit_runout(rb * fit.scale, centres, px_mm, sign=sign)
-            rmap = RunoutMap(rmap.angles_deg / fit.scale, rmap.offset_mm, rmap.residual_um)
+            rmap = fit_runout(true_deg, centres, px_mm, sign=sign)
+            rmap = RunoutMap(np.interp(rmap.angles_deg, true_deg[order], rb[order]),
+                             rmap.offset_mm, rmap.residual_um)
         except SolveError as exc:
             self._add(Finding("turntable.runout", "warn", f"not measured: {exc}",
                               name="not measured"))
@@ -780,7 +813,7 @@ class _Commission:
                 value=amp, sigma=rmap.residual_um, unit="um",
                 expected=f"procedure.systematic_um {sysu:g}",
                 name="" if verdict == "pass" else "large runout"))
-        self.axis_px = _circle_centre(rb * fit.scale * sign, centres)
+        self.axis_px = _circle_centre(true_deg * sign, centres)
         rim = getattr(self, "rim_centre", None)
         if rim is not None:
             d_um = float(np.hypot(*(self.axis_px - rim))) * (self.rec.pixel_size_um or 0)
