@@ -294,7 +294,12 @@ def draw_header(run: dict[str, Any], width: int = WIDTH) -> np.ndarray:
 
 
 def render_report(run: dict[str, Any], image: np.ndarray | None) -> np.ndarray:
-    """The report image (BGR): header, top view, convergence plot."""
+    """The report image (BGR): header, top view, convergence plot; for a commission run,
+    its own picture (``alignd.commission_report``)."""
+    if run.get("kind") == "commission":
+        from alignd.commission_report import render_commission
+
+        return render_commission(run, image)
     return np.vstack([draw_header(run), draw_top_view(run, image), draw_convergence(run)])
 
 

@@ -4,8 +4,10 @@ found and named, and a rig that matches its config passes."""
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from procedures_support import scene_rig, sim_config
@@ -147,6 +149,13 @@ def test_daemon_commission_record_is_used_by_align(capsys: pytest.CaptureFixture
         text = capsys.readouterr().out
         assert "run 2: commissioned" in text
         assert "WARN  turntable.direction" in text and "reversed" in text
+        out_dir = Path(env.sock).parent / "report"
+        assert alignctl(["--socket", env.sock, "report", "2", "--out", str(out_dir)]) == 0
+        capsys.readouterr()
+        png = cv2.imread(str(out_dir / "run-2.png"))
+        assert png is not None and png.shape[1] == 1100 and png.shape[0] > 900
+        record = json.loads((out_dir / "run-2.json").read_text())
+        assert record["kind"] == "commission" and record["result"]["runout"]["amplitude_um"] > 0
         assert alignctl(["--socket", env.sock, "status"]) == 0
         assert "commission: using commission run 2" in capsys.readouterr().out
         assert alignctl(["--socket", env.sock, "align", "--json", "-q"]) == 0

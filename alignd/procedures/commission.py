@@ -151,6 +151,7 @@ class CommissionRecord:
     angle_scale: float | None = None
     angle_error: tuple[tuple[int, float, float], ...] = ()  # periodic encoder error
     pixel_size_um: float | None = None  # at the holder's face
+    axis_px: tuple[float, float] | None = None  # the rotation axis in the top image
     holder_size_mm: tuple[float, float] | None = None
     runout: RunoutMap | None = None
     axes: dict[str, AxisMeasurement] = field(default_factory=dict)
@@ -187,6 +188,7 @@ class CommissionRecord:
                 "turntable_direction": self.turntable_sign, "angle_scale": self.angle_scale,
                 "angle_error_harmonics": [list(e) for e in self.angle_error],
                 "pixel_size_um": self.pixel_size_um, "holder_size_mm": self.holder_size_mm,
+                "axis_px": self.axis_px,
                 "axes": {r: a.to_json() for r, a in self.axes.items()}}),
             "runout": None if self.runout is None else self.runout.to_json(),
             "config_hash": self.config_hash, "devices": self.devices,
@@ -714,7 +716,7 @@ class _Commission:
         points = np.full((len(angles), 4, 2), np.nan)
         for i, a in enumerate(angles):
             readback.append(self._move("turntable", float(a)))
-            pose = self._look(f"sweep-{i:03d}", frames=1)
+            pose = self._look(f"0-{i:03d}", frames=1)  # "commission-0-<step>-0", as sweeps
             if pose is not None:
                 points[i] = pose.corners
             self._emit("turntable", f"runout sweep at {readback[-1]:+.2f} deg",
@@ -814,6 +816,7 @@ class _Commission:
                 expected=f"procedure.systematic_um {sysu:g}",
                 name="" if verdict == "pass" else "large runout"))
         self.axis_px = _circle_centre(true_deg * sign, centres)
+        self.rec.axis_px = (float(self.axis_px[0]), float(self.axis_px[1]))
         rim = getattr(self, "rim_centre", None)
         if rim is not None:
             d_um = float(np.hypot(*(self.axis_px - rim))) * (self.rec.pixel_size_um or 0)
