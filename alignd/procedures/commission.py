@@ -62,6 +62,7 @@ CommissionVerdict = Literal["commissioned", "failed", "aborted", "fault"]
 COMMISSION_EXIT: dict[str, int] = {"commissioned": 0, "failed": 1, "aborted": 1, "fault": 3}
 
 FRAMES_PER_POSE = 2
+FRAMES_PER_SWEEP_STEP = 2  # once per rig: worth halving the noise of the runout map
 ANGLE_SCALE_WARN = 0.002  # relative angle-scale error that warns
 ANGLE_ERROR_WARN_DEG = 0.01  # periodic encoder error that warns
 ROLE_CONE_DEG = 30.0  # a role moving within this of an axis of the holder frame "moves along" it
@@ -716,7 +717,8 @@ class _Commission:
         points = np.full((len(angles), 4, 2), np.nan)
         for i, a in enumerate(angles):
             readback.append(self._move("turntable", float(a)))
-            pose = self._look(f"0-{i:03d}", frames=1)  # "commission-0-<step>-0", as sweeps
+            # "commission-0-<step>-<n>", labelled like the other sweeps' frames
+            pose = self._look(f"0-{i:03d}", frames=FRAMES_PER_SWEEP_STEP)
             if pose is not None:
                 points[i] = pose.corners
             self._emit("turntable", f"runout sweep at {readback[-1]:+.2f} deg",
