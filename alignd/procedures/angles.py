@@ -54,11 +54,13 @@ class AngleErrorFit:
 
 
 def fit_angle_error(readback_deg: np.ndarray, image_deg: np.ndarray, sign: int,
-                    harmonics: tuple[int, ...] = (1, 2, 3, 4), min_snr: float = 3.0
+                    harmonics: tuple[int, ...] = (2, 3, 4), min_snr: float = 3.0
                     ) -> AngleErrorFit:
     """``sign * image = b + scale * a + sum_h (c_h cos ha + d_h sin ha)`` by least squares;
     a harmonic is kept when its amplitude exceeds ``min_snr`` times its uncertainty (an
-    insignificant one would add its noise to every later sweep)."""
+    insignificant one would add its noise to every later sweep). The first harmonic is not
+    fitted: on a sweep short of a full turn it trades off against the scale, and a tilted
+    camera's perspective turns the holder's edges by a first harmonic of its own."""
     a = np.asarray(readback_deg, float)
     y = sign * np.asarray(image_deg, float)
     ok = np.isfinite(a) & np.isfinite(y)
