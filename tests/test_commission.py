@@ -165,3 +165,22 @@ def test_daemon_commission_record_is_used_by_align(capsys: pytest.CaptureFixture
         run = env.client.run(3)
         assert any("using commission run 2" in e["msg"] for e in run["events"])
         assert run["details"]["conventions"]["turntable_direction"] == -1
+
+
+def test_soft_limits_beyond_the_controllers_travel_fail() -> None:
+    """A controller that reports its travel (SMC100 SL?/SR?) is held to it."""
+    from drivers.sim.direct import DirectSimAxis
+
+    class NarrowTravel(DirectSimAxis):
+        def software_limits(self) -> tuple[float, float]:
+            return (-100.0, 100.0)
+
+    cfg = sim_config()
+    rig, _ = scene_rig(cfg, 2)
+    rig.axes["turntable"].__class__ = NarrowTravel  # same axis, now reporting its travel
+    rec = run_commission(rig, cfg, tools=image_order_tools(2), abort=threading.Event())
+    f = rec.finding("device.turntable")
+    assert f is not None and f.verdict == "fail" and f.name == "soft limits beyond travel"
+    assert "[-100, 100]" in f.message
+    other = rec.finding("device.x")
+    assert other is not None and other.verdict == "pass"  # the Zaber axis reports no travel

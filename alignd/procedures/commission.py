@@ -34,7 +34,7 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -68,6 +68,13 @@ ANGLE_ERROR_WARN_DEG = 0.01  # periodic encoder error that warns
 ROLE_CONE_DEG = 30.0  # a role moving within this of an axis of the holder frame "moves along" it
 SECOND_ANGLE_DEG = 90.0
 MAX_TURN_DISAGREE_DEG = 1.0  # stage directions at two table angles, turned back, must agree
+
+
+@runtime_checkable
+class ReportsTravel(Protocol):
+    """An axis whose controller reports its travel limits (SMC100: SL?/SR?)."""
+
+    def software_limits(self) -> tuple[float, float]: ...
 
 
 @dataclass
@@ -272,6 +279,10 @@ class _Commission:
         self.rec = CommissionRecord(self.run_id, "fault", "", config_hash=config_hash(cfg))
         self.n_frames = 0
         self.motion_s = 0.0
+        self.rim_centre: np.ndarray | None = None
+        self.start_pose: _Pose | None = None
+        self.holder_px: tuple[float, float] = (math.nan, math.nan)
+        self.axis_px: np.ndarray = np.full(2, np.nan)
 
     # ---- plumbing --------------------------------------------------------------------
     def _emit(self, phase: str, message: str, step: int | None = None,
@@ -408,12 +419,13 @@ class _Commission:
             if stage and conf.stage and stage.upper() != conf.stage.upper():
                 verdict, name = "warn", "stage model differs"
                 msg += f"; the controller reports stage {stage}, the config says {conf.stage}"
-            try:  # the limits must be reachable: probe both ends' validity without moving
-                ax.check_target(lim.min)
-                ax.check_target(lim.max)
-            except AligndError as exc:
-                verdict, name = "fail", "travel"
-                msg += f"; soft limits unusable: {exc}"
+            if isinstance(ax, ReportsTravel):  # the controller knows its stage's travel
+                lo, hi = ax.software_limits()
+                msg += f"; controller travel [{lo:g}, {hi:g}] {conf.units}"
+                if lim.min < lo or lim.max > hi:
+                    verdict, name = "fail", "soft limits beyond travel"
+                    msg += (f": the config's soft limits reach beyond it; set "
+                            f"soft_limits inside [{lo:g}, {hi:g}]")
             pos = ax.position()
             msg += f"; at {pos:.4f} {conf.units}"
             self._add(Finding(f"device.{role}", verdict, msg, value=who,
@@ -506,6 +518,7 @@ class _Commission:
     def _translation_axes(self) -> None:
         """Direction, length, backlash and repeatability of x, y and the translator."""
         pose = self.start_pose
+        assert pose is not None  # _top_camera_static found it
         c = pose.corners
         u = ((c[1] - c[0]) + (c[2] - c[3])) / 2
         v = ((c[3] - c[0]) + (c[2] - c[1])) / 2
@@ -819,7 +832,7 @@ class _Commission:
                 name="" if verdict == "pass" else "large runout"))
         self.axis_px = _circle_centre(true_deg * sign, centres)
         self.rec.axis_px = (float(self.axis_px[0]), float(self.axis_px[1]))
-        rim = getattr(self, "rim_centre", None)
+        rim = self.rim_centre
         if rim is not None:
             d_um = float(np.hypot(*(self.axis_px - rim))) * (self.rec.pixel_size_um or 0)
             self._add(Finding("top.axis_vs_rim", "pass" if d_um <= 500 else "warn",
@@ -831,6 +844,7 @@ class _Commission:
     def _turntable_backlash(self) -> None:
         ax = self.rig.axis("turntable")
         other: Literal["+", "-"] = "-" if ax.config.approach == "+" else "+"
+        assert self.start_pose is not None
         arm = self.start_pose.centre - self.axis_px
         r = float(np.hypot(*arm))
         tang = np.array([-arm[1], arm[0]]) / max(r, 1e-9)  # +a turns the arm this way
