@@ -144,7 +144,8 @@ def draw_variant(seed: int) -> Variant:
         "invert_x": bool(rng.uniform() < 0.25),
         "invert_y": bool(rng.uniform() < 0.25),
         "stage_skew_deg": float(rng.uniform(-3.0, 3.0)),
-        "holder_size_mm": (float(rng.uniform(32, 44)), float(rng.uniform(20, 28))),
+        # inside the rim at every angle (the rim stays measurable, as on the reference rig)
+        "holder_size_mm": (float(rng.uniform(30, 40)), float(rng.uniform(18, 25))),
         "holder_dn": float(rng.choice([60.0, 130.0])),
         "pixel_size_um": float(rng.uniform(140, 190)),
         "wobble_um": float(rng.uniform(0, 10)),
