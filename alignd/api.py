@@ -20,7 +20,8 @@ read.
 Endpoints (all JSON unless noted; errors are ``{"error": CODE, "message": TEXT}``):
 ``GET /status``, ``GET /history?limit=N``, ``GET /runs/ID``,
 ``GET /runs/ID/events?after=SEQ&wait=S`` (long-poll for live progress), ``GET /frames/HASH``
-(image/png), ``POST /align`` and ``POST /check`` (body ``{"started_by": "user"|"timer"}``),
+(image/png), ``POST /align``, ``POST /check`` and ``POST /commission`` (body
+``{"started_by": "user"|"timer"}``),
 ``POST /abort``, ``POST /reset`` (reconnect the hardware after a fault).
 """
 
@@ -62,6 +63,7 @@ SO_PEERGROUPS = getattr(socket, "SO_PEERGROUPS", 59)  # Linux >= 4.13
 _PY_GETSOCKOPT_MAX = 1024  # CPython's getsockopt() accepts a buffer of at most 1024 bytes
 _NGROUPS_MAX = 65536  # Linux
 CONTROL_ACTIONS = {"align": "start an alignment", "check": "start a check",
+                   "commission": "commission the rig",
                    "abort": "abort a run", "reset": "reset the daemon"}
 _STARTED_BY = re.compile(r"^[a-z][a-z0-9_.-]{0,31}$")
 _HASH = re.compile(r"^[0-9a-f]{64}$")
@@ -499,7 +501,7 @@ class ApiServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
             if len(parts) == 1 and parts[0] in CONTROL_ACTIONS:
                 peer = self.peer(sock)
                 self.authoriser.require_control(peer, CONTROL_ACTIONS[parts[0]])
-                if parts[0] in ("align", "check"):
+                if parts[0] in ("align", "check", "commission"):
                     started_by = body.get("started_by", "user")
                     if not isinstance(started_by, str) or not _STARTED_BY.match(started_by):
                         raise Refused(HTTPStatus.BAD_REQUEST, "bad_request",
@@ -512,7 +514,8 @@ class ApiServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
         else:
             raise Refused(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed",
                           f"method {method} not allowed")
-        known = {"status", "history", "runs", "frames", "align", "check", "abort", "reset"}
+        known = {"status", "history", "runs", "frames", "align", "check", "commission",
+                 "abort", "reset"}
         if parts and parts[0] in known:
             raise Refused(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed",
                           f"{method} {path} is not allowed")

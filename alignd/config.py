@@ -77,6 +77,10 @@ class ProcedureConfig(Strict):
         "guarded: guarded acceptance per ISO 14253-1 (within when offset <= tolerance - U); "
         "simple: simple acceptance (within when offset <= tolerance)"))
     correction_axes: tuple[str, str] = ("x", "y")
+    turntable_direction: Literal[1, -1] = Field(1, description=(
+        "+1: a positive turntable angle turns the top image as R(a) of the design notes "
+        "(counter-clockwise on screen, y down); -1: the other way round. A valid commission "
+        "record's measured direction takes precedence"))
     pixel_size_tolerance: float = Field(0.15, gt=0, lt=1,
                                         description="accepted calibration/config disagreement")
     precheck: PrecheckConfig = PrecheckConfig()
@@ -100,6 +104,29 @@ class ProcedureConfig(Strict):
         return self
 
 
+class CommissionConfig(Strict):
+    """How ``alignctl commission`` measures the rig (once per rig and after a rebuild)."""
+
+    sweep_deg: float = Field(360.0, ge=30, le=360, description=(
+        "total turntable span of the runout sweep, centred on 0 (a full turn where the "
+        "cables allow; clipped to the turntable's soft limits)"))
+    step_deg: float = Field(5.0, ge=0.5, le=30, description="angle step of that sweep")
+    stage_step_mm: float = Field(0.5, gt=0, le=5, description=(
+        "length of the there-and-back moves of each translation axis"))
+    repeats: int = Field(3, ge=2, le=10, description=(
+        "there-and-back moves per axis (backlash and repeatability)"))
+    pixel_size_warn: float = Field(0.05, gt=0, lt=1, description=(
+        "relative disagreement of the measured and configured pixel size that warns"))
+    pixel_size_fail: float = Field(0.10, gt=0, lt=1, description="... and that fails")
+    holder_size_warn: float = Field(0.015, gt=0, lt=1, description=(
+        "relative disagreement of the measured and configured holder size that warns"))
+    holder_size_fail: float = Field(0.04, gt=0, lt=1, description="... and that fails")
+    rim_radius_mm: float | None = Field(None, gt=0, description=(
+        "outer radius of the turntable's rim (for the top camera's zenith angle)"))
+    top_camera_height_mm: float | None = Field(None, gt=0, description=(
+        "height of the top camera's lens above the turntable (for the zenith angle)"))
+
+
 class DaemonConfig(Strict):
     socket: str = "/run/alignd/alignd.sock"
     operator_group: str | None = "alignd-operators"
@@ -120,6 +147,7 @@ class AligndConfig(Strict):
     cameras: list[CameraConfig] = Field(..., min_length=1)
     holder: HolderConfig = HolderConfig()
     procedure: ProcedureConfig = ProcedureConfig()
+    commission: CommissionConfig = CommissionConfig()
     daemon: DaemonConfig = DaemonConfig()
     sim: SimConfig | None = None
 
@@ -239,3 +267,37 @@ def load_config(path: str | Path) -> AligndConfig:
 def config_hash(cfg: AligndConfig) -> str:
     """SHA-256 of the canonical JSON of the validated config (kept with every run)."""
     return hashlib.sha256(cfg.model_dump_json().encode()).hexdigest()
+
+
+def check_config_file(path: str | Path) -> tuple[AligndConfig, list[str]]:
+    """Validate a config without touching hardware: the model's checks (``ConfigError``)
+    plus what can only be judged together, returned as warnings."""
+    cfg = load_config(path)
+    notes: list[str] = []
+    tc, i = cfg.axis("turntable")
+    lim = tc.axes[i].soft_limits
+    p = cfg.procedure
+    if not (lim.min <= -p.sweep_deg and p.sweep_deg <= lim.max):
+        raise ConfigError(f"{path}: procedure.sweep_deg {p.sweep_deg:g} exceeds the "
+                          f"turntable soft limits [{lim.min:g}, {lim.max:g}]")
+    half = cfg.commission.sweep_deg / 2
+    if -half < lim.min or half > lim.max:
+        notes.append(f"commission.sweep_deg {cfg.commission.sweep_deg:g} will be clipped to "
+                     f"the turntable soft limits [{lim.min:g}, {lim.max:g}]")
+    for c in cfg.controllers:
+        if c.port.startswith("/dev/") and not Path(c.port).exists():
+            notes.append(f"controllers.{c.name}.port {c.port} does not exist now (device "
+                         "unplugged, or a udev rule missing?)")
+    for cam in cfg.cameras:
+        if cam.source.startswith("/dev/") and not Path(cam.source).exists():
+            notes.append(f"cameras.{cam.role}.source {cam.source} does not exist now")
+        if cam.role == "top" and cam.pixel_size_um is None:
+            notes.append("cameras.top.pixel_size_um is not set: calibration cannot check "
+                         "the image scale (alignctl commission measures it)")
+    tu, tv = cfg.holder.target_mm
+    su, sv = cfg.holder.size_mm
+    if abs(tu) <= su / 2 and abs(tv) <= sv / 2:
+        notes.append(f"holder.target_mm {cfg.holder.target_mm} lies inside the holder "
+                     f"({su:g} x {sv:g} mm): the target is the middle of the sample's "
+                     "surface, outside the holder's top face")
+    return cfg, notes

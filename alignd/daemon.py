@@ -44,7 +44,14 @@ from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
 from alignd.axis_readings import AxisReadings, tap_axes
 from alignd.client import resolve_socket
-from alignd.config import AligndConfig, config_hash, frame_keeper, load_config, run_footprint
+from alignd.config import (
+    AligndConfig,
+    check_config_file,
+    config_hash,
+    frame_keeper,
+    load_config,
+    run_footprint,
+)
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.logsetup import configure_logging
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
@@ -58,7 +65,8 @@ EXIT_OK, EXIT_USAGE, EXIT_FAULT = 0, 2, 3
 DEFAULT_STOP_TIMEOUT_S = 10.0
 CAMERA_CHECK_TIMEOUT_S = 5.0  # one frame from each camera at start and after reset
 EVENT_BUFFER = 5000  # live progress events kept in memory (all runs)
-BUSY_STATES = ("aligning", "checking")
+BUSY_STATES = ("aligning", "checking", "commissioning")
+RUN_STATES = {"align": "aligning", "check": "checking", "commission": "commissioning"}
 
 Procedure = Callable[..., Any]  # (rig, cfg, *, progress, abort, recorder) -> RunResult
 RigFactory = Callable[[AligndConfig], Any]  # config -> alignd.procedures.rig.Rig (connected)
@@ -185,8 +193,9 @@ def _accepts(fn: Callable[..., Any], name: str) -> bool:
 
 def default_procedures() -> dict[str, Procedure]:
     from alignd.procedures.align import run_alignment, run_check
+    from alignd.procedures.commission import run_commission
 
-    return {"align": run_alignment, "check": run_check}
+    return {"align": run_alignment, "check": run_check, "commission": run_commission}
 
 
 class Daemon:
@@ -427,7 +436,11 @@ class Daemon:
             if self._rig is None:
                 raise StateError("the rig is not connected")
             proc = self.procedures[job.kind]
-            extra = {"run_id": str(run_id)} if _accepts(proc, "run_id") else {}
+            extra: dict[str, Any] = {"run_id": str(run_id)} if _accepts(proc, "run_id") \
+                else {}
+            if job.kind in ("align", "check") and _accepts(proc, "commission"):
+                extra["commission"], note = self.commission_record()
+                recorder.event(note)
             raw = proc(self._rig, self.cfg, progress=lambda ev: self._on_progress(run_id, ev),
                        abort=job.abort, recorder=recorder, **extra)
             result, details = _result_dict(raw)
@@ -471,6 +484,9 @@ class Daemon:
                               "reason": reason or None}
             if verdict == "fault":
                 self.faults += 1
+            # a run refused by the config (a reversed turntable, a sweep beyond the soft
+            # limits) stopped before anything went wrong with the hardware: stay idle
+            if verdict == "fault" and not result.get("config_error"):
                 self._state, self._fault = "fault", reason or "fault"
             else:
                 self._state, self._fault = "idle", None
@@ -520,9 +536,47 @@ class Daemon:
         self._status_sent = now
         self.notifier.status(status_line(self.status()))
 
+    # ---- commissioning -----------------------------------------------------------------
+    def commission_record(self) -> tuple[Any, str]:
+        """The latest valid commission record (or None) and a sentence saying which/why not.
+
+        Valid: the newest finished commission run, verdict ``commissioned``, made with this
+        config (hash) and these devices (models and serial numbers)."""
+        from alignd.procedures.commission import CommissionRecord
+
+        last = self.store.latest_run("commission")
+        if last is None:
+            return None, ("no commission record: using the config's conventions (run "
+                          "'alignctl commission' once per rig)")
+        try:
+            rec = CommissionRecord.from_json(last["result"] or {})
+        except ValueError as exc:
+            return None, f"commission run {last['id']} unusable ({exc}): using the config"
+        why = rec.valid_for(self.config_hash, self._devices)
+        if why:
+            return None, (f"commission run {last['id']} ({last['ended_at']}) not used: {why}; "
+                          "using the config's conventions (run 'alignctl commission' again)")
+        amp = rec.runout.amplitude_um if rec.runout is not None else None
+        return rec, (f"using commission run {last['id']} ({last['ended_at']}): turntable "
+                     f"direction {rec.turntable_sign:+d}, angle scale {rec.angle_scale:.5f}, "
+                     f"pixel size {rec.pixel_size_um:.2f} um/px"
+                     + (f", runout map {amp:.1f} um peak" if amp is not None else ""))
+
+    def _commission_status(self) -> dict[str, Any] | None:
+        last = self.store.latest_run("commission")
+        if last is None:
+            return None
+        rec, note = self.commission_record()
+        return {"run_id": last["id"], "ended_at": last["ended_at"],
+                "verdict": last["verdict"], "valid": rec is not None, "note": note}
+
     # ---- the API's Controller -------------------------------------------------------
     def status(self) -> dict[str, Any]:
         refused = self.store.space_problem()  # why a new run would be refused (disk space)
+        try:
+            commission = self._commission_status()
+        except AligndError as exc:  # the history is unreadable: say so, keep the status
+            commission = {"valid": False, "note": f"commission record unreadable: {exc}"}
         with self._lock:
             job = self._current
             return {
@@ -539,6 +593,7 @@ class Daemon:
                 "state_dir": str(self.store.state_dir), "socket": self.socket_path,
                 "runs_refused": refused,
                 "web": self.web_url, "axes": self.readings.snapshot(),
+                "commission": commission,
             }
 
     def history(self, limit: int) -> list[dict[str, Any]]:
@@ -610,7 +665,7 @@ class Daemon:
             job = _Job(kind=kind, run_id=run_id, started_by=started_by, user=peer.user)
             self._current = job
             self._progress = None
-            self._state = "aligning" if kind == "align" else "checking"
+            self._state = RUN_STATES.get(kind, "checking")
             self._cond.notify_all()
         log.info("run %d (%s) requested by %s as %s", run_id, kind, peer.describe(), started_by)
         self._jobs.put(job)
@@ -750,7 +805,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="alignd", description="The alignment daemon (runs in the "
                                 "foreground; systemd runs it the same way).")
     p.add_argument("--version", action="version", version=f"alignd {__version__}")
-    p.add_argument("--config", required=True, help="instrument config (YAML)")
+    p.add_argument("--config", help="instrument config (YAML)")
+    p.add_argument("--check-config", metavar="FILE", help="validate a config without "
+                   "touching hardware and exit (0 valid, 2 invalid)")
+    p.add_argument("--config-reference", action="store_true",
+                   help="print the config reference (Markdown) and exit")
+    p.add_argument("--config-schema", action="store_true",
+                   help="print the config's JSON Schema (for editors) and exit")
     p.add_argument("--socket", help="control socket (default: $ALIGND_SOCKET, else the "
                    "config's daemon.socket)")
     p.add_argument("--state-dir", help="database, frames (default: $STATE_DIRECTORY, else "
@@ -768,7 +829,31 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = None,
          procedures: Mapping[str, Procedure] | None = None) -> int:
     """Run the daemon until SIGTERM/SIGINT. ``rig_factory``/``procedures`` are for tests."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.config_reference or args.config_schema:
+        from alignd.config_doc import json_schema, reference_markdown
+
+        sys.stdout.write(reference_markdown() if args.config_reference else json_schema())
+        return EXIT_OK
+    if args.check_config:
+        try:
+            cfg, notes = check_config_file(args.check_config)
+        except ConfigError as exc:
+            print(f"alignd: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        for n in notes:
+            print(f"warning: {n}")
+        print(f"{args.check_config}: valid ({cfg.name}, config hash {config_hash(cfg)[:12]})")
+        for c in cfg.controllers:
+            print(f"  {c.name}: {c.protocol} on {c.port}: "
+                  + ", ".join(f"{a.role} (address {a.address}, {a.stage or 'no stage'})"
+                              for a in c.axes))
+        for cam in cfg.cameras:
+            print(f"  camera {cam.role}: {cam.source}")
+        return EXIT_OK
+    if not args.config:
+        parser.error("--config FILE is required (or --check-config FILE)")
     configure_logging([logging.INFO, logging.DEBUG][min(args.verbose, 1)])
     try:
         cfg = load_config(args.config)

@@ -706,7 +706,12 @@ def draw_verdict(run: dict[str, Any], width: int = WIDTH, height: int = VERDICT_
 
 def render_report(run: dict[str, Any], image: np.ndarray | None) -> np.ndarray:
     """The report image (BGR): header, top view, the decision and its budget, the zoom
-    beside the convergence plot, notes."""
+    beside the convergence plot, notes; for a commission run, its own picture
+    (``alignd.commission_report``)."""
+    if run.get("kind") == "commission":
+        from alignd.commission_report import render_commission
+
+        return render_commission(run, image)
     lower = np.hstack([draw_zoom(run), draw_convergence(run)])
     return np.vstack([draw_header(run), draw_top_view(run, image), draw_verdict(run), lower,
                       draw_notes(run)])

@@ -43,21 +43,19 @@ from alignd.procedures.recorder import image_hash
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: run kind 'commission
 DB_NAME = "history.sqlite3"
 FRAMES_DIR = "frames"
-RUN_KINDS = ("align", "check")
+RUN_KINDS = ("align", "check", "commission")
 # room a run needs, when no config says better (the daemon uses alignd.config.run_footprint)
 MIN_FREE_BYTES = 64 * 1024 * 1024
 RESERVE_NAME = "reserve"
 RESERVE_BYTES = 4 * 1024 * 1024  # kept allocated to record a run's end on a full disk
 INTERRUPTED_REASON = "daemon stopped before the run finished (crash, SIGKILL or power loss)"
 
-_SCHEMA = """
-CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE runs (
+_RUNS_TABLE = """CREATE TABLE {name} (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
-    kind TEXT NOT NULL CHECK (kind IN ('align', 'check')),
+    kind TEXT NOT NULL CHECK (kind IN ('align', 'check', 'commission')),
     status TEXT NOT NULL CHECK (status IN ('running', 'finished', 'interrupted')),
     started_at TEXT NOT NULL,
     ended_at TEXT,
@@ -72,7 +70,11 @@ CREATE TABLE runs (
     reason TEXT,
     result_json TEXT,
     details_json TEXT
-);
+)"""
+
+_SCHEMA = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+""" + _RUNS_TABLE.format(name="runs") + """;
 CREATE TABLE sweeps (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     run_id INTEGER NOT NULL REFERENCES runs(id) ON DELETE CASCADE,
@@ -291,6 +293,31 @@ class Store:
                 c.execute("INSERT INTO meta(key, value) VALUES ('created_at', ?)", (utc_now(),))
                 c.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
             log.info("created history database %s (schema %d)", self.db_path, SCHEMA_VERSION)
+            return
+        if version == 1:
+            self._migrate_1_to_2(conn)
+
+    def _migrate_1_to_2(self, conn: sqlite3.Connection) -> None:
+        """Schema 2 admits the run kind 'commission': SQLite cannot change a CHECK
+        constraint in place, so the runs table is rebuilt (SQLite's documented 12-step
+        procedure: foreign keys off, copy, drop, rename, check, foreign keys on)."""
+        conn.execute("PRAGMA foreign_keys=OFF")
+        try:
+            with self._tx() as c:
+                c.execute(_RUNS_TABLE.format(name="runs_v2"))
+                c.execute("INSERT INTO runs_v2 SELECT * FROM runs")
+                c.execute("DROP TABLE runs")
+                c.execute("ALTER TABLE runs_v2 RENAME TO runs")
+                c.execute("CREATE INDEX runs_status ON runs(status)")
+                bad = c.execute("PRAGMA foreign_key_check").fetchall()
+                if bad:
+                    raise StoreError(f"{self.db_path}: migrating to schema 2 broke "
+                                     f"{len(bad)} references; the database is unchanged")
+                c.execute("PRAGMA user_version=2")
+        finally:
+            conn.execute("PRAGMA foreign_keys=ON")
+        log.info("migrated history database %s to schema 2 (run kind 'commission')",
+                 self.db_path)
 
     def _require(self) -> sqlite3.Connection:
         if self._conn is None:
@@ -548,6 +575,17 @@ class Store:
             "offset_norm_um": result.get("offset_norm_um"), "U_um": result.get("U_um"),
             "iterations": result.get("iterations"),
         }
+
+    def latest_run(self, kind: str) -> dict[str, Any] | None:
+        """The newest finished run of ``kind``: id, ended_at, verdict and its result."""
+        with self._reader() as conn:
+            row = conn.execute(
+                "SELECT id, ended_at, verdict, result_json FROM runs WHERE kind = ? AND "
+                "status = 'finished' ORDER BY id DESC LIMIT 1", (kind,)).fetchone()
+        if row is None:
+            return None
+        return {"id": row["id"], "ended_at": row["ended_at"], "verdict": row["verdict"],
+                "result": _loads(row["result_json"])}
 
     def list_runs(self, limit: int = 20) -> list[dict[str, Any]]:
         """The newest ``limit`` runs, newest first, as summaries."""

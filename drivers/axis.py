@@ -15,7 +15,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Self
+from typing import Literal, Self
 
 from drivers import stages
 from drivers.config import AxisConfig
@@ -201,8 +201,11 @@ class Axis(ABC):
                 device=self.name, port=self.port)
         return float(target)
 
-    def move_to(self, target: float) -> float:
+    def move_to(self, target: float, approach: Literal["+", "-"] | None = None) -> float:
         """Move to ``target``, approaching from the configured side; return the read-back.
+
+        ``approach`` overrides the configured side for this move (commissioning arrives
+        from both sides to measure the backlash).
 
         Blocks until the move is done and verified within the deadband, retrying at most
         ``config.retries`` times. Raises ``LimitError`` before moving for a bad target,
@@ -211,7 +214,7 @@ class Axis(ABC):
         """
         target = self.check_target(target)
         cfg = self.config
-        sign = 1.0 if cfg.approach == "+" else -1.0
+        sign = 1.0 if (approach or cfg.approach) == "+" else -1.0
         lo, hi = cfg.soft_limits.min, cfg.soft_limits.max
         here = self.position()
         reached = here

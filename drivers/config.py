@@ -158,6 +158,28 @@ class SimWorldConfig(Strict):
     turntable_encoder_error_deg: float = 0.003
     top_camera_zenith_deg: float = 0.5
     noise_dn: float = 2.0
+    # ---- what differs between rigs (commissioning finds these; see docs/configure.md) ----
+    turntable_direction: Literal[1, -1] = Field(1, description=(
+        "+1: a positive commanded angle turns the table the way the design notes' R(a) "
+        "turns the image; -1: the other way round"))
+    turntable_scale: float = Field(1.0, gt=0.5, lt=2.0, description=(
+        "true table degrees per commanded degree (a wrong gear ratio or step count)"))
+    camera_mirror: bool = Field(False, description="top image mirrored left-right")
+    camera_rotation_deg: Literal[0, 90, 180, 270] = Field(0, description=(
+        "top camera turned about its optical axis"))
+    swap_xy: bool = Field(False, description="the config's x role drives the y stage and back")
+    invert_x: bool = Field(False, description="the x role's stage moves the other way")
+    invert_y: bool = Field(False, description="the y role's stage moves the other way")
+    holder_dn: float | None = Field(None, ge=0, le=255, description=(
+        "grey level of the holder's top face (None: the renderer's dark holder)"))
+
+    @model_validator(mode="after")
+    def _ranges(self) -> SimWorldConfig:
+        if not 0.0 <= self.wobble_um <= 50.0:
+            raise ValueError(f"wobble_um {self.wobble_um} outside [0, 50]")
+        if self.backlash_mm < 0 or self.turntable_backlash_deg < 0:
+            raise ValueError("backlash must not be negative")
+        return self
 
 
 class SimConfig(Strict):

@@ -114,7 +114,7 @@ def test_stage_travel_and_axes_checked_at_load(tmp_path: Path, mutate, needles) 
 @pytest.mark.parametrize(("old", "new", "needle"), [
     ("max: 24.5", "max: .inf", "controllers.1.axes.0.soft_limits.max"),
     ("min: 0.5", "min: .nan", "controllers.1.axes.0.soft_limits.min"),
-    ("min: -30.0", "min: -.inf", "controllers.0.axes.0.soft_limits.min"),
+    ("min: -169.0", "min: -.inf", "controllers.0.axes.0.soft_limits.min"),
     ("tolerance_um: 10.0", "tolerance_um: .inf", "procedure.tolerance_um"),
     ("deadband: 0.0005", "deadband: .nan", "controllers.1.axes.0.deadband"),
 ])

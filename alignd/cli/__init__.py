@@ -26,7 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="alignctl",
         description="alignd's command line: offline analysis (solve, analyze), the daemon's "
-        "controls (status, align, check, abort, reset, history, report) and the demo.",
+        "controls (status, align, check, commission, abort, reset, history, report) and the demo.",
         epilog="exit codes: 0 ok / within tolerance, 1 out of tolerance or not converged, "
         "2 usage or config error, 3 hardware or daemon fault")
     parser.add_argument("--version", action="version", version=f"alignctl {__version__}")

@@ -1,5 +1,5 @@
-"""alignctl commands that talk to the daemon: status, align, check, abort, reset, history,
-report.
+"""alignctl commands that talk to the daemon: status, align, check, commission, abort, reset,
+history, report.
 
 Human output by default, ``--json`` for scripts (``align``/``check`` print the run-result
 JSON as the final stdout line). Live progress goes to stderr. Exit codes (contract):
@@ -20,12 +20,14 @@ from pathlib import Path
 from typing import Any
 
 from alignd.client import ApiError, Client, DaemonUnreachable, resolve_socket
+from alignd.procedures.commission import COMMISSION_EXIT
 from alignd.procedures.result import EXIT_CODES
 from alignd.textfmt import identity_text, micro, with_micro
 
 EXIT_OK, EXIT_OUT_OF_TOLERANCE, EXIT_USAGE, EXIT_FAULT = 0, 1, 2, 3
 EXIT_SKIPPED = 75  # EX_TEMPFAIL, --started-by timer only: busy/starting/faulted -> skipped
-VERDICT_EXIT = {**EXIT_CODES, "interrupted": EXIT_FAULT}  # interrupted: a record-only verdict
+VERDICT_EXIT = {**EXIT_CODES, **COMMISSION_EXIT,
+                "interrupted": EXIT_FAULT}  # interrupted: a record-only verdict
 
 
 def exit_code(result: dict[str, Any] | None) -> int:
@@ -51,9 +53,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         return p
 
     add("status", "show the daemon's state and the progress of a run", cmd_status)
+    commands = {"align": cmd_align, "check": cmd_check, "commission": cmd_commission}
     for kind, help_ in (("align", "align the sample onto the rotation axis (closed loop)"),
-                        ("check", "measure the offset without moving the sample")):
-        p = add(kind, help_, cmd_align if kind == "align" else cmd_check)
+                        ("check", "measure the offset without moving the sample"),
+                        ("commission", "measure the rig's conventions once (turntable "
+                         "direction, scale, runout; axes; cameras; holder); align and "
+                         "check use the record")):
+        p = add(kind, help_, commands[kind])
         p.add_argument("--started-by", default="user", choices=["user", "timer"],
                        help="recorded with the run; 'timer' also turns a refusal because "
                        f"the daemon is busy or faulted into a skip (exit {EXIT_SKIPPED})")
@@ -103,6 +109,11 @@ def status_text(st: dict[str, Any]) -> str:
     if last:
         lines.append(f"last run: {last['id']} ({last['kind']}) {last['verdict']}"
                      + (f": {with_micro(last['reason'])}" if last.get("reason") else ""))
+    com = st.get("commission")
+    if isinstance(com, dict):
+        lines.append(f"commission: {com.get('note')}")
+    else:
+        lines.append("commission: none recorded (run 'alignctl commission' once per rig)")
     if st.get("web"):
         lines.append(f"dashboard: {st['web']} (read-only)")
     devices = st.get("devices") or {}
@@ -171,7 +182,21 @@ def progress_text(ev: dict[str, Any]) -> str:
         f"[note] {ev.get('msg', '')}"
 
 
+def commission_text(result: dict[str, Any]) -> str:
+    """A commission record as a findings table: verdict, item, what was measured."""
+    lines = [f"run {result.get('run_id')}: {result.get('verdict')}"
+             + (f" ({result['reason']})" if result.get("reason") else "")]
+    for f in result.get("findings") or []:
+        if not isinstance(f, dict):
+            continue
+        mark = {"pass": "pass", "warn": "WARN", "fail": "FAIL"}.get(str(f.get("verdict")), "?")
+        lines.append(f"  {mark:4s}  {f.get('item')!s:26s} {f.get('message', '')}")
+    return "\n".join(lines)
+
+
 def result_text(result: dict[str, Any]) -> str:
+    if result.get("kind") == "commission":
+        return commission_text(result)
     lines = [f"run {result.get('run_id')}: {result.get('verdict')}"
              + (f" ({result['reason']})" if result.get("reason") else "")]
     if result.get("offset_um") is not None:
@@ -325,6 +350,10 @@ def cmd_align(args: argparse.Namespace) -> int:
 
 def cmd_check(args: argparse.Namespace) -> int:
     return _run_cmd(args, "check")
+
+
+def cmd_commission(args: argparse.Namespace) -> int:
+    return _run_cmd(args, "commission")
 
 
 # ---- abort / reset ---------------------------------------------------------------------------

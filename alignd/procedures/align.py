@@ -32,7 +32,9 @@ import numpy as np
 
 from alignd.config import AligndConfig
 from alignd.errors import AligndError, ConfigError, DeviceError, StateError, VisionError
+from alignd.procedures.angles import AngleMap
 from alignd.procedures.calibrate import Calibration, calibrate, configured_pixel_size_um
+from alignd.procedures.commission import CommissionRecord
 from alignd.procedures.decision import Decision, decide
 from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progress
 from alignd.procedures.recorder import NullRecorder, RunRecorder
@@ -88,25 +90,31 @@ def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | N
                   abort: threading.Event | None = None, recorder: RunRecorder | None = None,
                   tools: Tools | None = None, run_id: str | None = None,
                   frames_per_step: int | None = None, systematic_um: float | None = None,
-                  runout: RunoutMap | None = None) -> RunResult:
+                  runout: RunoutMap | None = None,
+                  commission: CommissionRecord | None = None) -> RunResult:
     """Align the sample's target point onto the mean rotation axis (see the module
-    docstring). ``runout``: the turntable's error-motion map from commissioning, if any."""
+    docstring). ``commission``: a valid commission record (the daemon passes the latest
+    one): its measured turntable direction and angle scale replace the config's, its runout
+    map is subtracted from every sweep. ``runout``: a map given directly (it wins over the
+    record's)."""
     return _Run(rig, cfg, "align", progress, abort, recorder, tools, run_id,
-                frames_per_step, systematic_um, runout).execute()
+                frames_per_step, systematic_um, runout, commission).execute()
 
 
 def run_check(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
               abort: threading.Event | None = None, recorder: RunRecorder | None = None,
               tools: Tools | None = None, run_id: str | None = None,
               frames_per_step: int | None = None, systematic_um: float | None = None,
-              runout: RunoutMap | None = None) -> RunResult:
+              runout: RunoutMap | None = None,
+              commission: CommissionRecord | None = None) -> RunResult:
     """Measure the offset against the tolerance; no translation stage moves.
 
     Answers from the first sweep the decision rule can decide on; when it cannot, measures
-    better (pooling the centre) up to ``procedure.max_sweeps`` sweeps.
+    better (pooling the centre) up to ``procedure.max_sweeps`` sweeps. ``runout`` and
+    ``commission`` as for ``run_alignment``.
     """
     return _Run(rig, cfg, "check", progress, abort, recorder, tools, run_id,
-                frames_per_step, systematic_um, runout).execute()
+                frames_per_step, systematic_um, runout, commission).execute()
 
 
 class _Run:
@@ -114,7 +122,8 @@ class _Run:
                  progress: ProgressCallback | None, abort: threading.Event | None,
                  recorder: RunRecorder | None, tools: Tools | None,
                  run_id: str | None, frames_per_step: int | None = None,
-                 systematic_um: float | None = None, runout: RunoutMap | None = None) -> None:
+                 systematic_um: float | None = None, runout: RunoutMap | None = None,
+                 commission: CommissionRecord | None = None) -> None:
         self.rig = rig
         self.cfg = cfg
         self.mode = mode
@@ -131,7 +140,18 @@ class _Run:
         self.systematic_um = (cfg.procedure.systematic_um if systematic_um is None
                               else systematic_um)
         self.pool = CentrePool()
-        self.runout = runout
+        self.commission = commission
+        if commission is not None:
+            self.angle_map = commission.angle_map(f"commission run {commission.run_id}")
+            if commission.runout is not None and systematic_um is None:
+                # the bearing's error motion is subtracted: what stays systematic is the
+                # map's own error, below its per-frame residual (1 sigma), and never taken
+                # below 1 um (perspective, the encoder's periodic error)
+                self.systematic_um = min(self.systematic_um,
+                                         max(1.0, commission.runout.residual_um))
+        else:
+            self.angle_map = AngleMap(cfg.procedure.turntable_direction, 1.0, "config")
+        self.runout = runout if runout is not None or commission is None else commission.runout
         self.plan = SweepPlan(self.p.sweep_deg, self.p.sweep_steps, self.frames_per_step)
 
     # ---- top level -------------------------------------------------------------------
@@ -203,6 +223,11 @@ class _Run:
             "moves": self.st.iterations, "sweeps": self.st.sweeps,
             "compute_s": self.st.compute_s, "motion_s": self.st.motion_s,
             "tools": (self.tools.names if self.tools else None),
+            "conventions": {"source": self.angle_map.source,
+                            "turntable_direction": self.angle_map.sign,
+                            "angle_scale": self.angle_map.scale,
+                            "runout": self.commission is not None
+                            and self.commission.runout is not None},
         }
         level = logging.INFO if result.ok else logging.WARNING
         log.log(level, "%s run %s: %s %s", self.mode, self.run_id, verdict, reason)
@@ -244,7 +269,8 @@ class _Run:
         _data, m, warning = measure(
             self.rig, self.cfg, self.tools, kind=kind, iteration=n, abort=self.abort,
             progress=self._progress_safe, recorder=self.recorder, pixel_size_um=px,
-            pool=self.pool, floor_um=self.systematic_um, runout=self.runout, plan=self.plan)
+            pool=self.pool, floor_um=self.systematic_um, angle_map=self.angle_map,
+            runout=self.runout, plan=self.plan)
         if warning:
             self._warn(warning)
             if "moved between sweeps" in warning:

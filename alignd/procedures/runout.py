@@ -12,10 +12,11 @@ The model, for a point carried by the turntable (the holder's centre) seen at an
 with ``c`` the mean axis, ``p`` the point's arm, ``s`` = +1 or -1 the turning sense in the
 image, and ``w`` the error motion, written as a Fourier series of harmonics 2..K (harmonics
 0 and 1 are the axis and the arm: no measurement on one point separates them from ``w``).
-All terms are linear in the unknowns, so one least-squares solve gives everything. On a
-sweep shorter than a full turn the harmonics are no longer orthogonal to the rigid terms;
-the map is then what is left after the best rigid fit over the swept range (the part that
-would bias a centre fit on that range), which is what is projected out below.
+All terms are linear in the unknowns, so one least-squares solve gives everything. Over most
+of a turn (``WELL_SEPARATED_DEG``) the harmonics stay nearly orthogonal to the rigid terms
+and the fitted series is the error motion; on a short sweep they are not, and the map is
+what is left after the best rigid fit over the swept range (the part that would bias a
+centre fit on that range).
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ import numpy as np
 from alignd.errors import SolveError
 
 DEFAULT_HARMONICS = (2, 3, 4, 5)
+# over at least this span the harmonics separate from the rigid terms (nearly orthogonal):
+# the fitted series is the error motion itself, harmonics 0 and 1 excluded
+WELL_SEPARATED_DEG = 270.0
 
 
 def _rigid_columns(a_rad: np.ndarray, sign: int) -> np.ndarray:
@@ -134,14 +138,29 @@ class RunoutMap:
         return cls(angles, off.reshape(-1, 2) if off.size else off, res)
 
 
+def _solve(R: np.ndarray, ar: np.ndarray, hs: tuple[int, ...], y: np.ndarray
+           ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Least squares of the rigid terms and the harmonics ``hs``: solution, residual (1
+    sigma per coordinate), harmonic design matrix."""
+    H = _harmonic_columns(ar, hs)
+    A = np.hstack([R, H])
+    sol, *_ = np.linalg.lstsq(A, y, rcond=1e-10)
+    resid = y - A @ sol
+    dof = max(len(y) - np.linalg.matrix_rank(A), 1)
+    return sol, math.sqrt(float(resid @ resid) / dof), H
+
+
 def fit_runout(angles_deg: np.ndarray, centres_px: np.ndarray, pixel_size_mm: float, *,
-               sign: int = 1, harmonics: tuple[int, ...] = DEFAULT_HARMONICS) -> RunoutMap:
+               sign: int = 1, harmonics: tuple[int, ...] = DEFAULT_HARMONICS,
+               min_chi2: float = 20.0) -> RunoutMap:
     """The error-motion map from a wide sweep of one tracked point (the holder's centre).
 
     ``angles_deg`` are the turntable's read-back angles, ``centres_px`` (n, 2) the point in
     the top image (NaN rows are skipped), ``pixel_size_mm`` the image scale at the point's
     plane, ``sign`` the turning sense in the image (+1: the design notes' convention).
-    Harmonics the sweep cannot resolve (more unknowns than half the points) are dropped.
+    Harmonics the sweep cannot resolve (more unknowns than half the points) are dropped;
+    over a wide sweep so are those the data do not show (chi-square of the harmonic's four
+    coefficients below ``min_chi2``; 20 is p = 5e-4 for pure noise).
     """
     a = np.asarray(angles_deg, float)
     z = np.asarray(centres_px, float)
@@ -168,17 +187,27 @@ def fit_runout(angles_deg: np.ndarray, centres_px: np.ndarray, pixel_size_mm: fl
         hs = hs[:-1]
     ar = np.radians(a)
     R = _rigid_columns(ar, sign)
-    H = _harmonic_columns(ar, hs)
     y = z.reshape(-1)
-    A = np.hstack([R, H])
-    sol, *_ = np.linalg.lstsq(A, y, rcond=1e-10)
-    fit = A @ sol
-    dof = max(len(y) - np.linalg.matrix_rank(A), 1)
-    resid = y - fit
-    residual_mm = math.sqrt(float(resid @ resid) / dof)
-    # the map: the harmonic part with whatever a rigid fit over this range would absorb
-    # taken out (nothing on a full turn, by orthogonality)
+    sol, residual_mm, H = _solve(R, ar, hs, y)
+    if span >= WELL_SEPARATED_DEG and hs:
+        # keep the harmonics the data show (chi-square of their 4 coefficients): a noise
+        # harmonic would be subtracted from every later sweep as if it were the bearing's
+        A = np.hstack([R, H])
+        cov = residual_mm ** 2 * np.linalg.pinv(A.T @ A)
+        kept = []
+        for i, k in enumerate(hs):
+            sl = slice(4 + 4 * i, 8 + 4 * i)
+            c = sol[sl]
+            chi2 = float(c @ np.linalg.pinv(cov[sl, sl]) @ c)
+            if chi2 > min_chi2:
+                kept.append(k)
+        if tuple(kept) != hs:
+            hs = tuple(kept)
+            sol, residual_mm, H = _solve(R, ar, hs, y)
     w = H @ sol[4:] if H.shape[1] else np.zeros_like(y)
-    coef, *_ = np.linalg.lstsq(R, w, rcond=None)
-    w = w - R @ coef
+    if span < WELL_SEPARATED_DEG:
+        # a short sweep cannot tell the harmonics from the axis and the arm: the map is
+        # what a rigid fit over this range leaves (what would bias a centre fit on it)
+        coef, *_ = np.linalg.lstsq(R, w, rcond=None)
+        w = w - R @ coef
     return RunoutMap(a, w.reshape(-1, 2), residual_mm * 1000.0)

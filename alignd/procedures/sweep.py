@@ -23,6 +23,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from alignd.config import AligndConfig, HolderConfig
 from alignd.errors import SolveError, VisionError
+from alignd.procedures.angles import AngleMap, check_sweep_angles
 from alignd.procedures.budget import Budget, Contribution, u_of
 from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
@@ -622,38 +623,48 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
             abort: threading.Event | None, progress: ProgressCallback,
             recorder: RunRecorder, pixel_size_um: float | None,
             pool: CentrePool | None = None, frames_per_step: int = 1,
-            floor_um: float = 0.0, rectify: bool = True, runout: RunoutMap | None = None,
+            floor_um: float = 0.0, rectify: bool = True, angle_map: AngleMap | None = None,
+            runout: RunoutMap | None = None, holder: HolderConfig | None = None,
             plan: SweepPlan | None = None) -> tuple[SweepData, Measurement, str]:
-    """Sweep, check the tracking, correct for the runout map, solve the centre (pooled),
-    locate the target.
+    """Sweep, check the tracking and the angles, correct for the runout map, solve the
+    centre (pooled), locate the target.
 
-    With a ``runout`` map every frame's corners are moved back by the error motion at its
-    read-back angle before anything is fitted, so the centre is the mean axis of rotation;
-    the floor is then the map's uncertainty (plus the sweep-to-sweep excess), else
-    ``floor_um``. Returns the raw data, the measurement and a warning ('' if none).
+    ``angle_map`` turns read-back angles into the image convention (config or commission
+    record); the sweep's own images must agree with it (``check_sweep_angles``, which stops
+    the run on a reversed or mis-scaled turntable). With a ``runout`` map every frame's
+    corners are moved back by the error motion at its read-back angle before anything is
+    fitted, so the centre is the mean axis of rotation; the floor is then the map's
+    uncertainty (plus the sweep-to-sweep excess), else ``floor_um``. ``holder`` replaces
+    ``cfg.holder`` (a commissioned holder size). Returns the raw data (angles in the image
+    convention), the measurement and a warning ('' if none).
     """
     p = cfg.procedure
     plan = plan or SweepPlan(p.sweep_deg, p.sweep_steps, frames_per_step)
-    data = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
-                     progress=progress, recorder=recorder,
-                     frames_per_step=plan.frames_per_step, angles=plan.angles())
+    amap = angle_map or AngleMap(p.turntable_direction, 1.0, "config")
+    holder = holder or cfg.holder
+    raw = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
+                    progress=progress, recorder=recorder,
+                    frames_per_step=plan.frames_per_step, angles=plan.angles())
+    data = dataclasses.replace(raw, readback_deg=amap.image_angles(raw.readback_deg).tolist())
     n_ok = int(data.tracked.sum())
     n = len(data.readback_deg)
-    recorder.sweep(kind, iteration, data.to_json(pixel_size_um), data.commanded_deg,
-                   data.readback_deg)
+    recorder.sweep(kind, iteration, data.to_json(pixel_size_um), raw.commanded_deg,
+                   raw.readback_deg)
     if n_ok < max(3, math.ceil(MIN_TRACKED_FRACTION * n)):
         raise VisionError(f"holder tracked in only {n_ok} of {n} frames of the {kind} sweep "
                           f"(need {max(3, math.ceil(MIN_TRACKED_FRACTION * n))}); no move made")
+    check_sweep_angles(raw.readback_deg, raw.points, amap, kind)
     progress(ProgressEvent("solve", f"solving the centre from {n_ok} frames",
                            iteration=iteration))
     t0 = time.perf_counter()
-    P = rectifier(data.points, cfg.holder) if rectify else np.eye(3)
+    P = rectifier(data.points, holder) if rectify else np.eye(3)
     pts = apply_h(P, data.points)
-    if runout is not None:  # the map is in the rectified view too (see sweep_runout)
+    scale = 1.0
+    if runout is not None:  # the map is in the rectified view, indexed by read-back angle
         ok = data.tracked
-        scale = float(np.mean([holder_pose(pts[i], cfg.holder).scale_px_per_mm
+        scale = float(np.mean([holder_pose(pts[i], holder).scale_px_per_mm
                                for i in np.flatnonzero(ok)]))
-        pts = runout.correct_px(np.asarray(data.readback_deg), pts, 1.0 / scale)
+        pts = runout.correct_px(np.asarray(raw.readback_deg), pts, 1.0 / scale)
     rect = dataclasses.replace(data, points=pts)
     try:
         centre = tools.solve(np.asarray(data.readback_deg), rect.points, pixel_size_um)
@@ -685,14 +696,14 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     floor = runout_floor(runout, floor_um)
     if runout is not None:
         try:
-            cov_map = map_floor_cov(runout, rect, used, cfg.holder, 1.0 / scale)
+            cov_map = map_floor_cov(runout, rect, used, holder, 1.0 / scale)
             u_axis = math.sqrt(max(float(np.trace(cov_map)) / 2.0, 0.0))
             floor = Floor(u_axis, f"runout map ({runout.residual_um:.2f} um per point over "
                           f"{len(runout.angles_deg)} angles) propagated through this sweep",
                           "A")
         except (SolveError, ValueError, np.linalg.LinAlgError) as exc:
             log.warning("runout map uncertainty not propagated (%s); using its scatter", exc)
-    m = measure_offset(rect, used, cfg.holder, floor)
+    m = measure_offset(rect, used, holder, floor)
     m.n_sweeps = int(getattr(used, "n_sweeps", 1))
     m.sweep_centre_px = np.asarray(centre.center_px, float)
     m.plan = plan

@@ -28,6 +28,26 @@ class Corners:
     reason: str = ""
 
 
+@dataclass(frozen=True)
+class RimInfo:
+    """The turntable rim in a top frame: ellipse centre, eccentricity, camera zenith."""
+
+    center_px: tuple[float, float]
+    eccentricity: float
+    zenith_deg: float | None  # None without the rim radius and camera height
+
+
+@dataclass(frozen=True)
+class SideInfo:
+    """The side camera's view: both targets found, their angles and positions."""
+
+    tilt_deg: float
+    sample_angle_deg: float
+    pole_angle_deg: float
+    sample_x_px: float
+    pole_x_px: float
+
+
 TrackFn = Callable[[Frame], Corners]
 SolveFn = Callable[[np.ndarray, np.ndarray, float | None], Any]  # angles, points, px -> result
 ScalarFn = Callable[[Frame], float]
@@ -44,6 +64,8 @@ class Tools:
     tilt: ScalarFn | None = None
     eccentricity: ScalarFn | None = None
     names: dict[str, str] | None = None
+    rim: Callable[[Frame, float | None, float | None], RimInfo] | None = None
+    side: Callable[[Frame], SideInfo] | None = None
 
 
 def as_corners(det: Any) -> Corners:
@@ -93,7 +115,21 @@ def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
         res = vision.fit_rim(frame.gray)
         return float(getattr(res, "eccentricity", res))
 
+    def rim(frame: Frame, radius_mm: float | None, height_mm: float | None) -> RimInfo:
+        res = vision.fit_rim(frame.gray, radius_mm, height_mm)
+        z = float(res.camera_zenith_deg)
+        return RimInfo((float(res.center_px[0]), float(res.center_px[1])),
+                       float(res.eccentricity), z if z == z else None)
+
+    def side(frame: Frame) -> SideInfo:
+        res = vision.measure_tilt(frame.gray)
+        xs = [e.x_mid_px for e in res.sample_edges] or [float("nan")]
+        xp = [e.x_mid_px for e in res.pole_edges] or [float("nan")]
+        return SideInfo(float(res.tilt_deg), float(res.sample_angle_deg),
+                        float(res.pole_angle_deg), float(np.mean(xs)), float(np.mean(xp)))
+
     return Tools(track=track, solve=solve, tilt=tilt, eccentricity=eccentricity,
+                 rim=rim, side=side,
                  names={"track": "alignd.vision.track_holder",
                         "solve": "alignd.solve.solve_centre(auto)",
                         "tilt": "alignd.vision.measure_tilt",

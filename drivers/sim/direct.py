@@ -163,6 +163,11 @@ class SceneCamera(Camera):
         else:
             side = self.world.side_scene()
             meta["tilt_deg"] = side.sample_edge_angle_deg - side.pole_angle_deg
+            from drivers.sim.render import RenderOptions, side_x_px
+
+            opts = RenderOptions()
+            meta["sample_x_px"] = side_x_px(side.sample_x_mm, opts)
+            meta["pole_x_px"] = side_x_px(side.pole_x_mm, opts)
         img = np.full((8, 8), self._seq % 251, np.uint8)
         return Frame(img, time.monotonic(), self._seq, meta)
 

@@ -457,6 +457,12 @@ def _side_mapping(opts: RenderOptions) -> tuple[float, float, float]:
     return s, (w - 1) / 2, (h - 1) / 2
 
 
+def side_x_px(x_mm: float, opts: RenderOptions) -> float:
+    """Image column of a lab position along the side view (roll ignored)."""
+    s, cx, _cy = _side_mapping(opts)
+    return cx + (x_mm - opts.side_center_mm[0]) / s
+
+
 def _side_geometry(scene: SideScene, opts: RenderOptions) -> dict[str, object]:
     """Ideal image geometry of the side view: the sample slab and the pole, in px."""
     w, h = opts.size_px

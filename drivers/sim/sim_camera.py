@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from typing import Literal
@@ -26,8 +27,11 @@ class SimCamera(Camera):
         super().__init__(f"{role}-camera", f"sim:{role}")
         self.world = world
         self.role = role
-        self.opts = opts or render.RenderOptions(read_noise_dn=world.cfg.noise_dn,
-                                                 gradient=(0.08, 0.04))
+        if opts is None:
+            opts = render.RenderOptions(read_noise_dn=world.cfg.noise_dn, gradient=(0.08, 0.04))
+            if world.cfg.holder_dn is not None:
+                opts = dataclasses.replace(opts, holder_dn=world.cfg.holder_dn)
+        self.opts = opts
         self.rng = np.random.default_rng(seed)
         self.lock = lock or threading.Lock()
         self._seq = 0

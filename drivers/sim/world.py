@@ -55,8 +55,14 @@ def top_camera(cfg: SimWorldConfig, height_mm: float = 800.0,
     With zero tilt a point on the turntable plane maps to ``axis_px + xy / pixel_size``.
     """
     f = height_mm / (cfg.pixel_size_um / 1000.0)
-    # looking down: camera x = lab x, camera y = lab y, optical axis = -z (lab)
-    base = np.column_stack([[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]])
+    # looking down: camera x = lab x, camera y = lab y, optical axis = -z (lab); a camera
+    # turned about its optical axis or mirrored (variants of real rigs) changes x and y
+    r = math.radians(cfg.camera_rotation_deg)
+    cx = np.array([math.cos(r), math.sin(r), 0.0])
+    cy = np.array([-math.sin(r), math.cos(r), 0.0])
+    if cfg.camera_mirror:
+        cx = -cx
+    base = np.column_stack([cx, cy, [0, 0, -1.0]])
     z = math.radians(cfg.top_camera_zenith_deg)
     az = math.radians(azimuth_deg)
     axis = np.array([-math.sin(az), math.cos(az), 0.0])  # tilt about this horizontal axis
@@ -128,7 +134,8 @@ class World:
     def turntable_deg(self) -> float:
         """True mechanical angle: load position plus a periodic encoder error."""
         a = self._pos("turntable")
-        return a + self.cfg.turntable_encoder_error_deg * math.sin(
+        true = self.cfg.turntable_direction * self.cfg.turntable_scale * a
+        return true + self.cfg.turntable_encoder_error_deg * math.sin(
             math.radians(a) * 3 + self.encoder_phase)
 
     def wobble_mm(self, angle_deg: float) -> np.ndarray:
@@ -145,6 +152,13 @@ class World:
         ex = rot2(m) @ np.array([1.0, 0.0])
         ey = rot2(m + self.cfg.stage_skew_deg) @ np.array([0.0, 1.0])
         et = rot2(self.yaw_deg + self.cfg.translator_skew_deg) @ np.array([0.0, -1.0])
+        # the config's roles as wired: swapped cables, a motor turning the other way
+        if self.cfg.swap_xy:
+            ex, ey = ey, ex
+        if self.cfg.invert_x:
+            ex = -ex
+        if self.cfg.invert_y:
+            ey = -ey
         return {"x": ex, "y": ey, "translator": et}
 
     def holder_center_tt(self) -> np.ndarray:
