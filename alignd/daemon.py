@@ -445,13 +445,12 @@ class Daemon:
                 if evs or not live or remaining <= 0:
                     break
                 self._cond.wait(remaining)
+        out: dict[str, Any] = {"run_id": run_id, "events": evs,
+                               "next": evs[-1]["seq"] if evs else after, "done": not live}
         if not live:
             st = self.store.run_status(run_id)
             if st is None:
                 return None
-        out: dict[str, Any] = {"run_id": run_id, "events": evs,
-                               "next": evs[-1]["seq"] if evs else after, "done": not live}
-        if not live:
             out["status"], out["verdict"] = st
             out["result"] = self.store.result(run_id)
         return out

@@ -122,12 +122,13 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
     pick = pick_frame(run)
     sweep = (pick or {}).get("sweep") or ((run.get("sweeps") or [None])[-1])
     if image is None:
-        base = np.full((720, 1280, 3), 40, np.uint8)  # the reference camera's size
+        base: np.ndarray = np.full((720, 1280, 3), 40, np.uint8)  # the reference camera's size
         _text(base, "no saved frame", (20, 40), 1.0)
     else:
         base = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
         if base.dtype != np.uint8:
-            base = cv2.normalize(base, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+            base = cv2.normalize(base, np.empty_like(base), 0, 255,
+                                     cv2.NORM_MINMAX).astype(np.uint8)
     scale = width / base.shape[1]
     view = cv2.resize(base, (width, round(base.shape[0] * scale)),
                       interpolation=cv2.INTER_AREA)
@@ -243,8 +244,8 @@ def draw_convergence(run: dict[str, Any], width: int = WIDTH, height: int = PLOT
         cv2.line(img, (x0, y), (x1, y), (225, 225, 225), 1)
         cv2.putText(img, f"{dec:g}", (8, y + 4), FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
         dec *= 10
-    for n in range(int(n_min), int(n_max) + 1):
-        cv2.putText(img, str(n), (px_x(n) - 4, y1 + 18), FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    for it in range(int(n_min), int(n_max) + 1):
+        cv2.putText(img, str(it), (px_x(it) - 4, y1 + 18), FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(img, "iteration", ((x0 + x1) // 2 - 30, height - 8), FONT, 0.45, (0, 0, 0), 1,
                 cv2.LINE_AA)
     if tol:

@@ -562,12 +562,24 @@ def test_physics_for_mts25() -> None:
 
 
 # ---- driver against the emulator, in process (manual clock) --------------------------------
+class PollClock:
+    """The emulator's manual clock as the driver's: each poll is 50 ms of controller time."""
+
+    def __init__(self, clock: ManualClock) -> None:
+        self.clock = clock
+
+    def now(self) -> float:
+        return self.clock.now()
+
+    def sleep(self, dt: float) -> None:
+        self.clock.advance(0.05)
+
+
 def emulated_axis(start: float = 12.0) -> tuple[AptAxis, SimAxis, ManualClock, EmuSerial]:
     clock = ManualClock()
     emu, sim = kdc(clock, start=start)
     fake = EmuSerial(emu)
-    axis = AptAxis(axis_config(), link_on(fake))
-    axis._sleep = lambda dt: clock.advance(0.05)  # each poll is 50 ms of controller time
+    axis = AptAxis(axis_config(), link_on(fake), clock=PollClock(clock))
     return axis, sim, clock, fake
 
 
@@ -622,8 +634,7 @@ def test_driver_drives_a_k10cr1_in_degrees() -> None:
                       deadband=0.001, backlash_approach=0.5)
     sim = SimAxis("turntable", physics_for(cfg), clock, np.random.default_rng(0), start=7.0)
     fake = EmuSerial(AptEmulator("turntable", {1: sim}, clock))
-    axis = AptAxis(cfg, link_on(fake))
-    axis._sleep = lambda dt: clock.advance(0.05)
+    axis = AptAxis(cfg, link_on(fake), clock=PollClock(clock))
     with axis:
         assert axis.identify().model == "K10CR1" and axis.identify().stage == "K10CR1"
         axis.home()

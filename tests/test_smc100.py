@@ -163,8 +163,7 @@ def scripted_axis(script: list[tuple[bytes, bytes]], timeout_s: float = 0.05,
                          timeout_s=timeout_s, xonxoff=True)
     port = ScriptedPort(script)
     tr._ser = port  # the transport's own open() is for real URLs
-    axis = Smc100Axis(axis_config(**cfg), tr)
-    axis._sleep = lambda s: None
+    axis = Smc100Axis(axis_config(**cfg), tr, clock=ManualClock())  # polls do not wait
     return axis, port
 
 

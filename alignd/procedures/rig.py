@@ -17,6 +17,7 @@ from typing import Any
 from alignd.errors import AligndError, ConfigError, StateError
 from drivers.axis import Axis, Identity
 from drivers.camera import Camera
+from drivers.errors import Cancelled
 
 log = logging.getLogger(__name__)
 
@@ -123,28 +124,19 @@ class Rig:
     def abort_guard(self, abort: threading.Event | None) -> Iterator[None]:
         """Make a set ``abort`` interrupt a move in progress, not just between moves.
 
-        ``Axis.wait_until_stopped`` polls through the axis' ``_sleep``; wrapping it lets the
-        abort raise ``AbortRequested`` from inside a blocking ``move_to``. The caller stops
-        the axes.
+        Every axis waits with ``abort`` as its cancel event (``Axis.cancel_on``); a wait it
+        ends raises ``AbortRequested`` here. The caller stops the axes.
         """
         if abort is None:
             yield
             return
-        saved = {}
-        for role, ax in self.axes.items():
-            orig = ax._sleep
-            saved[role] = orig
-
-            def guarded(dt: float, _orig: Callable[[float], Any] = orig) -> None:
-                check_abort(abort)
-                _orig(dt)
-
-            ax._sleep = guarded
-        try:
-            yield
-        finally:
-            for role, orig in saved.items():
-                self.axes[role]._sleep = orig
+        with contextlib.ExitStack() as stack:
+            for ax in self.axes.values():
+                stack.enter_context(ax.cancel_on(abort))
+            try:
+                yield
+            except Cancelled as exc:
+                raise AbortRequested(abort_reason(abort)) from exc
 
 
 def validate_rig(rig: Rig, correction_axes: tuple[str, ...], need_side: bool = False) -> None:

@@ -16,7 +16,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,6 +28,9 @@ from alignd.procedures.rig import Rig, check_abort
 from alignd.procedures.tools import Tools
 from drivers.camera import Camera, Frame
 from drivers.errors import CameraError
+
+if TYPE_CHECKING:
+    from alignd.solve.result import CentreResult
 
 log = logging.getLogger(__name__)
 
@@ -258,9 +261,9 @@ class CentrePool:
     """Inverse-covariance weighted mean of the per-sweep centres, with a consistency check."""
 
     def __init__(self) -> None:
-        self.items: list[tuple[np.ndarray, np.ndarray, Any]] = []
+        self.items: list[tuple[np.ndarray, np.ndarray, CentreResult]] = []
 
-    def add(self, res: Any) -> tuple[PooledCentre, str]:
+    def add(self, res: CentreResult) -> tuple[PooledCentre, str]:
         """Add a sweep's centre; returns the pooled centre and a warning ('' if none)."""
         c = np.asarray(res.center_px, float)
         cov = np.asarray(res.cov_px2, float)
@@ -281,9 +284,9 @@ class CentrePool:
         b = sum(np.linalg.solve(cov, c) for c, cov, _ in self.items)
         cov_p = np.linalg.inv(W)
         last = self.items[-1][2]
-        return PooledCentre(cov_p @ b, cov_p, float(getattr(last, "rms_residual_px", np.nan)),
-                            int(sum(getattr(r, "inliers", 0) for *_, r in self.items)),
-                            int(sum(getattr(r, "outliers", 0) for *_, r in self.items)),
+        return PooledCentre(cov_p @ b, cov_p, float(last.rms_residual_px),
+                            int(sum(r.inliers for *_, r in self.items)),
+                            int(sum(r.outliers for *_, r in self.items)),
                             len(self.items))
 
 
@@ -362,7 +365,7 @@ def _wrap180(deg: float) -> float:
     return (deg + 180.0) % 360.0 - 180.0
 
 
-def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
+def measure_offset(data: SweepData, centre: CentreResult | PooledCentre, holder: HolderConfig,
                    floor_um: float = 0.0) -> Measurement:
     """Target offset from the centre, in the turntable frame at angle 0, with covariance.
 
@@ -402,10 +405,10 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
         centre_px=c, cov_centre_px2=cov_c, offset_px=off, cov_offset_px2=cov_off,
         scale_px_per_mm=s, offset_um=off_mm * 1000.0, cov_offset_um2=cov_mm * 1e6,
         yaw_deg=yaw_deg, sigma_centre_um=sigma_c,
-        rms_residual_px=float(getattr(centre, "rms_residual_px", float("nan"))),
+        rms_residual_px=float(centre.rms_residual_px),
         n_frames=len(data.readback_deg), n_tracked=n,
-        inliers=int(getattr(centre, "inliers", n * 4)),
-        outliers=int(getattr(centre, "outliers", 0)),
+        inliers=int(centre.inliers),
+        outliers=int(centre.outliers),
         sigma_random_um=math.sqrt(max(float(np.linalg.eigvalsh(cov_rand).max()), 0.0)) * 1e3)
 
 
@@ -440,11 +443,11 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
         raise SolveError(f"{kind} sweep {iteration}: centre solve failed: {exc}") from exc
     t1 = time.perf_counter()
     warning = ""
-    used: Any = centre
+    used: CentreResult | PooledCentre = centre
     if pool is not None:
         used, warning = pool.add(centre)
     m = measure_offset(rect, used, cfg.holder, floor_um)
-    m.n_sweeps = int(getattr(used, "n_sweeps", 1))
+    m.n_sweeps = used.n_sweeps if isinstance(used, PooledCentre) else 1
     m.sweep_centre_px = np.asarray(centre.center_px, float)
     m.p_within = conformance_probability(m.offset_um, m.cov_offset_um2,
                                          cfg.procedure.tolerance_um)

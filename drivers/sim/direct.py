@@ -25,8 +25,9 @@ import numpy as np
 
 from drivers.axis import Axis, AxisStatus, Identity
 from drivers.camera import Camera, Frame
+from drivers.clock import SYSTEM_CLOCK
 from drivers.config import AxisConfig, CameraConfig, ControllerConfig, SimConfig
-from drivers.errors import DeviceTimeoutError, TransportError
+from drivers.errors import TransportError
 from drivers.sim.clock import Clock, ManualClock
 from drivers.sim.kinematics import AxisPhysics, SimAxis
 from drivers.sim.world import World
@@ -51,15 +52,15 @@ class DirectSimAxis(Axis):
 
     def __init__(self, config: AxisConfig, sim: SimAxis, clock: Clock,
                  name: str | None = None, serial: str | None = None) -> None:
-        super().__init__(config, name)
+        # the axis waits on a manual clock itself; under a scaled clock it polls in wall
+        # time (the config's time_scale shortens its timeouts)
+        super().__init__(config, name,
+                         clock=clock if isinstance(clock, ManualClock) else SYSTEM_CLOCK)
         self.sim = sim
-        self.clock = clock
+        self.sim_clock = clock
         self.serial = serial or f"SIM-{config.role.upper()}"
         self.connected = False
         self.lock = threading.RLock()
-        if isinstance(clock, ManualClock):
-            self._sleep = clock.advance
-            self._now = clock.now
 
     @property
     def port(self) -> str:
@@ -87,19 +88,15 @@ class DirectSimAxis(Axis):
         self._require("home")
         with self.lock:
             self.sim.home()
-        deadline = self._now() + self.config.home_timeout_s / max(self.config.time_scale, 1e-9)
-        while True:
+
+        def homed() -> bool:
             with self.lock:
                 moving = self.sim.moving  # refreshes the model: sets homed on arrival
-                done = self.sim.homed and not moving
-            if done:
-                break
-            if self._now() > deadline:
-                self.stop()
-                raise DeviceTimeoutError(f"homing did not finish within "
-                                         f"{self.config.home_timeout_s:g} s",
-                                         device=self.name, port=self.port, command="home")
-            self._sleep(self.config.poll_interval_s)
+                return self.sim.homed and not moving
+
+        self.poll_until(homed, self.config.home_timeout_s / max(self.config.time_scale, 1e-9),
+                        command="home", timeout_message=f"homing did not finish within "
+                        f"{self.config.home_timeout_s:g} s")
         self.position_known = True
 
     def _start_move(self, target: float) -> None:
@@ -169,13 +166,15 @@ class SceneCamera(Camera):
 
 @dataclass
 class SceneDetection:
-    """Duck-typed like ``alignd.vision.HolderDetection`` (corners_px, ok, quality)."""
+    """A detection with the fields of ``alignd.vision.HolderDetection`` the procedures read
+    (``alignd.procedures.tools.Detection``)."""
 
     corners_px: np.ndarray
     ok: bool = True
     quality: float = 1.0
     center_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
     angle_deg: float = 0.0
+    reason: str = ""
 
 
 def scene_tracker(sigma_px: float, rng: np.random.Generator,
