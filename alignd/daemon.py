@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
-import inspect
 import logging
 import os
 import queue
@@ -35,24 +34,63 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeGuard, get_args
 
 from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
 from alignd.client import resolve_socket
 from alignd.config import AligndConfig, config_hash, frame_keeper, load_config
 from alignd.errors import AligndError, ConfigError, StateError
+from alignd.procedures.events import ProgressCallback, ProgressEvent
+from alignd.procedures.recorder import RunRecorder
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
+
+if TYPE_CHECKING:  # the rig's module (drivers, cameras) loads when the rig is opened
+    from alignd.procedures.rig import Rig
 
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_USAGE, EXIT_FAULT = 0, 2, 3
 DEFAULT_STOP_TIMEOUT_S = 10.0
 EVENT_BUFFER = 5000  # live progress events kept in memory (all runs)
-BUSY_STATES = ("aligning", "checking")
+State = Literal["starting", "idle", "aligning", "checking", "fault"]
+STATES: tuple[State, ...] = get_args(State)
+BUSY_STATES: tuple[State, ...] = ("aligning", "checking")
+RunKind = Literal["align", "check"]
+JobKind = Literal["align", "check", "reset"]
 
-Procedure = Callable[..., Any]  # (rig, cfg, *, progress, abort, recorder) -> RunResult
-RigFactory = Callable[[], Any]  # -> alignd.procedures.rig.Rig (connected)
+
+def _is_run_kind(kind: str) -> TypeGuard[RunKind]:
+    return kind in get_args(RunKind)
+
+
+class ProcedureResult(Protocol):
+    """What a procedure returns (``alignd.procedures.RunResult``)."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The run-result contract object."""
+        ...
+
+    @property
+    def config_error(self) -> bool:
+        """The fault was caused by the config (alignctl exits 2)."""
+        ...
+
+    @property
+    def details(self) -> dict[str, Any] | None:
+        """The full record kept with the run."""
+        ...
+
+
+class Procedure(Protocol):
+    """A run the daemon executes (``run_alignment``, ``run_check``)."""
+
+    def __call__(self, rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback,
+                 abort: threading.Event, recorder: RunRecorder,
+                 run_id: str) -> ProcedureResult: ...
+
+
+RigFactory = Callable[[], "Rig"]  # connected, or connected by the daemon
 
 
 # ---- systemd notification -----------------------------------------------------------------
@@ -124,38 +162,26 @@ class AbortEvent(threading.Event):
 
 @dataclass
 class _Job:
-    kind: str  # align | check | reset
+    kind: JobKind
     run_id: int | None = None
     started_by: str = "user"
     user: str | None = None
     abort: AbortEvent = field(default_factory=AbortEvent)
 
 
-def _result_dict(result: Any) -> tuple[dict[str, Any], Any]:
+def _result_dict(result: ProcedureResult) -> tuple[dict[str, Any], Any]:
     """A procedure's ``RunResult`` as (the run-result contract's dict, its details)."""
-    out = result.to_json() if hasattr(result, "to_json") else result
-    if isinstance(out, str):
-        import json
-
-        out = json.loads(out)
+    out = result.to_json()
     if not isinstance(out, dict):
         raise StateError(f"procedure returned {type(result).__name__}, not a run result")
     out = jsonable(out)
-    if getattr(result, "config_error", False):
+    if result.config_error:
         out["config_error"] = True  # a fault caused by the config: alignctl exits 2
-    return out, jsonable(getattr(result, "details", None))
+    return out, jsonable(result.details)
 
 
-def _identities(rig: Any) -> dict[str, Any]:
-    return {role: jsonable(ident) for role, ident in (getattr(rig, "identities", {}) or {}
-                                                      ).items()}
-
-
-def _accepts(fn: Callable[..., Any], name: str) -> bool:
-    try:
-        return name in inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return False
+def _identities(rig: Rig) -> dict[str, Any]:
+    return {role: jsonable(ident) for role, ident in rig.identities.items()}
 
 
 def default_procedures() -> dict[str, Procedure]:
@@ -182,7 +208,7 @@ class Daemon:
         self._config_json = cfg.model_dump_json()
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
-        self._state = "starting"
+        self._state: State = "starting"
         self._fault: str | None = None
         self._current: _Job | None = None
         self._progress: dict[str, Any] | None = None
@@ -191,7 +217,7 @@ class Daemon:
         self._seq = 0
         self._jobs: queue.Queue[_Job | None] = queue.Queue()
         self._stopping = threading.Event()
-        self._rig: Any = None
+        self._rig: Rig | None = None
         self._devices: dict[str, Any] = {}
         self._worker = threading.Thread(target=self._worker_main, name="alignd-worker",
                                         daemon=True)
@@ -230,11 +256,11 @@ class Daemon:
         return True
 
     @property
-    def state(self) -> str:
+    def state(self) -> State:
         return self._state
 
     # ---- the worker -----------------------------------------------------------------
-    def _set_state(self, state: str, fault: str | None = None) -> None:
+    def _set_state(self, state: State, fault: str | None = None) -> None:
         with self._cond:
             self._state = state
             self._fault = fault
@@ -271,7 +297,7 @@ class Daemon:
         rig = None
         try:
             rig = self.rig_factory()
-            if not getattr(rig, "identities", None) and hasattr(rig, "connect"):
+            if not rig.identities:
                 rig.connect()
         except Exception as exc:  # any failure leaves the daemon up, in fault, saying why
             if rig is not None:  # release what was opened (ports, simulator threads)
@@ -294,8 +320,7 @@ class Daemon:
         rig, self._rig = self._rig, None
         if rig is None:
             return
-        errors = rig.stop_all() if hasattr(rig, "stop_all") else []
-        for e in errors or []:
+        for e in rig.stop_all():
             log.error("stop on shutdown: %s", e)
         with contextlib.suppress(Exception):
             rig.close()
@@ -315,9 +340,8 @@ class Daemon:
             if self._rig is None:
                 raise StateError("the rig is not connected")
             proc = self.procedures[job.kind]
-            extra = {"run_id": str(run_id)} if _accepts(proc, "run_id") else {}
             raw = proc(self._rig, self.cfg, progress=lambda ev: self._on_progress(run_id, ev),
-                       abort=job.abort, recorder=recorder, **extra)
+                       abort=job.abort, recorder=recorder, run_id=str(run_id))
             result, details = _result_dict(raw)
             verdict = str(result.get("verdict") or "fault")
             reason = str(result.get("reason") or "")
@@ -330,7 +354,7 @@ class Daemon:
             reason = (job.abort.reason or str(exc)) if verdict == "aborted" else \
                 f"{type(exc).__name__}: {exc}"
         if verdict in ("fault", "aborted") or crashed:
-            for e in (self._rig.stop_all() if self._rig is not None else []) or []:
+            for e in self._rig.stop_all() if self._rig is not None else []:
                 log.error("run %d: stopping after %s: %s", run_id, verdict, e)
             self._record_positions(run_id, recorder)
         if result is None:
@@ -338,8 +362,8 @@ class Daemon:
                       "offset_norm_um": None, "U_um": None, "iterations": 0,
                       "tilt_deg": None, "yaw_deg": None}
         result["run_id"] = run_id
-        truth = getattr(self._rig, "truth", None)
-        if "truth" not in result and callable(truth):
+        truth = self._rig.truth if self._rig is not None else None
+        if "truth" not in result and truth is not None:
             try:
                 result["truth"] = jsonable(truth())
             except Exception as exc:  # the truth block is informative only
@@ -366,8 +390,8 @@ class Daemon:
 
     def _record_positions(self, run_id: int, recorder: SqliteRecorder) -> None:
         """After a stop, note where every axis ended up (or that it is unknown)."""
-        axes = getattr(self._rig, "axes", None)
-        if not isinstance(axes, dict) or not axes:
+        axes = self._rig.axes if self._rig is not None else {}
+        if not axes:
             return
         parts = []
         for role, ax in axes.items():
@@ -388,11 +412,9 @@ class Daemon:
             self._events.append(event)
             self._cond.notify_all()
 
-    def _on_progress(self, run_id: int, ev: Any) -> None:
+    def _on_progress(self, run_id: int, ev: ProgressEvent) -> None:
         self.notifier.watchdog()
-        d = jsonable(ev.to_dict() if hasattr(ev, "to_dict") else ev)
-        if not isinstance(d, dict):
-            d = {"message": str(d)}
+        d = jsonable(ev.to_dict())
         d.pop("timestamp", None)
         with self._cond:
             self._progress = d
@@ -456,7 +478,7 @@ class Daemon:
         return out
 
     def start_run(self, kind: str, started_by: str, peer: Peer) -> dict[str, Any]:
-        if kind not in self.procedures:
+        if kind not in self.procedures or not _is_run_kind(kind):
             raise Refused(HTTPStatus.NOT_FOUND, "not_found", f"no procedure {kind!r}")
         with self._cond:
             if self._stopping.is_set():
@@ -635,7 +657,7 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     if rig_factory is None:
         seed = args.seed
 
-        def rig_factory() -> Any:
+        def rig_factory() -> Rig:
             from alignd.hardware import open_rig
 
             return open_rig(cfg, seed=seed)

@@ -26,9 +26,9 @@ import numpy as np
 from alignd.config import AligndConfig
 from alignd.errors import AligndError, ConfigError, DeviceError, StateError, VisionError
 from alignd.procedures.calibrate import Calibration, calibrate, configured_pixel_size_um
-from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progress
+from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_progress
 from alignd.procedures.recorder import NullRecorder, RunRecorder
-from alignd.procedures.result import RunResult
+from alignd.procedures.result import RunResult, Verdict
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
 from alignd.procedures.sweep import CentrePool, Measurement, grab_fresh, measure
 from alignd.procedures.tools import Tools, default_tools
@@ -54,7 +54,8 @@ CONFORMANCE = 0.95  # "within tolerance" needs P(|offset| <= tolerance) >= this
 class _Stop(AligndError):
     """Ends the loop with a verdict that is not an error (refusal, not converged)."""
 
-    def __init__(self, verdict: str, reason: str, measurement: Measurement | None = None):
+    def __init__(self, verdict: Verdict, reason: str,
+                 measurement: Measurement | None = None) -> None:
         super().__init__(reason)
         self.verdict = verdict
         self.reason = reason
@@ -133,7 +134,8 @@ class _Run:
     # ---- top level -------------------------------------------------------------------
     def execute(self) -> RunResult:
         t_start = time.time()
-        verdict, reason, config_error = "fault", "", False
+        verdict: Verdict = "fault"
+        reason, config_error = "", False
         final: Measurement | None = None
         try:
             with self.rig.abort_guard(self.abort):
@@ -171,8 +173,7 @@ class _Run:
         if final is None and verdict in ("not_converged", "out_of_tolerance"):
             final = self.st.last
         result = RunResult(
-            run_id=self.run_id, mode=self.mode, verdict=verdict,  # type: ignore[arg-type]
-            reason=reason,
+            run_id=self.run_id, mode=self.mode, verdict=verdict, reason=reason,
             offset_um=None if final is None else (float(final.offset_um[0]),
                                                   float(final.offset_um[1])),
             U_um=None if final is None else final.U_um,
@@ -201,7 +202,7 @@ class _Run:
         return result
 
     # ---- helpers ---------------------------------------------------------------------
-    def _emit(self, phase: str, message: str, *, m: Measurement | None = None,
+    def _emit(self, phase: Phase, message: str, *, m: Measurement | None = None,
               iteration: int | None = None) -> None:
         ev = ProgressEvent(phase, message, iteration=iteration,
                            offset_um=None if m is None else (float(m.offset_um[0]),
@@ -275,7 +276,7 @@ class _Run:
     def _prechecks(self) -> None:
         pc = self.p.precheck
         assert self.tools is not None
-        problems: list[tuple[str, str]] = []  # (verdict if refused, message)
+        problems: list[tuple[Verdict, str]] = []  # (verdict if refused, message)
         top = self.rig.camera("top")
         assert top is not None
         self._emit("precheck", "looking for the holder")
@@ -317,7 +318,7 @@ class _Run:
                 raise _Stop(verdict, f"pre-check refused: {msg}")
             self._warn(f"pre-check: {msg}")
 
-    def _check(self) -> tuple[str, str, Measurement]:
+    def _check(self) -> tuple[Verdict, str, Measurement]:
         n = 0
         while True:
             n += 1
@@ -345,7 +346,7 @@ class _Run:
         self.st.calibration = cal
         return cal
 
-    def _align(self) -> tuple[str, str, Measurement]:
+    def _align(self) -> tuple[Verdict, str, Measurement]:
         cal = self._calibrate()
         it = 1
         self.st.iterations = 1
