@@ -7,7 +7,6 @@ instrument speaks the same bytes as the real one.
 
 from __future__ import annotations
 
-import importlib
 import logging
 
 from alignd.config import AligndConfig
@@ -15,11 +14,9 @@ from alignd.errors import ConfigError
 from alignd.procedures.rig import Rig
 from drivers.axis import Axis
 from drivers.camera import Camera, open_camera
+from drivers.registry import make_axes
 
 log = logging.getLogger(__name__)
-
-DRIVERS = {"smc100": "drivers.newport_smc100", "apt": "drivers.thorlabs_apt",
-           "zaber": "drivers.zaber_ascii"}
 
 
 def open_rig(cfg: AligndConfig, *, seed: int | None = None,
@@ -45,8 +42,7 @@ def open_rig(cfg: AligndConfig, *, seed: int | None = None,
                 assert sim_rig is not None and cfg.sim is not None
                 ctl = ctl.model_copy(update={"port": sim_rig.url(ctl.name)})
                 time_scale = cfg.sim.time_scale
-            module = importlib.import_module(DRIVERS[ctl.protocol])
-            for ax in module.make_axes(ctl, time_scale=time_scale):
+            for ax in make_axes(ctl, time_scale=time_scale):
                 axes[ax.config.role] = ax
         cameras: dict[str, Camera] = {}
         for cam in cfg.cameras:

@@ -12,8 +12,6 @@ axes advance simulated time instead of sleeping, so a run is fast and determinis
 
 from __future__ import annotations
 
-import dataclasses
-import importlib
 import logging
 import threading
 import time
@@ -29,7 +27,8 @@ from drivers.clock import SYSTEM_CLOCK
 from drivers.config import AxisConfig, CameraConfig, ControllerConfig, SimConfig
 from drivers.errors import TransportError
 from drivers.sim.clock import Clock, ManualClock
-from drivers.sim.kinematics import AxisPhysics, SimAxis
+from drivers.sim.kinematics import SimAxis
+from drivers.sim.rig import physics_for
 from drivers.sim.world import World
 
 if TYPE_CHECKING:
@@ -37,10 +36,6 @@ if TYPE_CHECKING:
     from alignd.procedures.rig import Rig
 
 log = logging.getLogger(__name__)
-
-_EMULATOR_MODULES = {"smc100": "drivers.sim.smc100_emu", "apt": "drivers.sim.apt_emu",
-                     "zaber": "drivers.sim.zaber_emu"}
-
 
 class DirectSimAxis(Axis):
     """An ``Axis`` over a ``SimAxis``: statuses from its flags, no protocol in between.
@@ -192,18 +187,6 @@ def scene_tracker(sigma_px: float, rng: np.random.Generator,
 
 
 # ---- the rig ---------------------------------------------------------------------------
-def physics_for(protocol: str, axis: AxisConfig, sim: SimConfig) -> AxisPhysics:
-    """The stage's mechanics as its emulator models them, imperfections from the world."""
-    module = importlib.import_module(_EMULATOR_MODULES[protocol])
-    phys: AxisPhysics = module.physics_for(axis)
-    w = sim.world
-    if axis.units == "deg":
-        return dataclasses.replace(phys, backlash=w.turntable_backlash_deg,
-                                   repeatability=max(phys.repeatability, 0.0))
-    return dataclasses.replace(phys, backlash=w.backlash_mm,
-                               repeatability=w.stage_repeatability_um / 1000.0)
-
-
 @dataclass
 class DirectParts:
     """What ``build_direct_axes`` makes: axes by role, the world, cameras, the clock."""
