@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from scripted_serial import url_for
 
 from drivers.config import AxisConfig, ControllerConfig, FaultConfig, SoftLimits
 from drivers.errors import (
@@ -73,6 +74,9 @@ class ScriptSerial:
         self.written: list[bytes] = []
         self.timeout: float | None = 0.1
 
+    def open(self) -> None:
+        pass
+
     def write(self, data: bytes) -> int:
         self.written.append(bytes(data))
         assert self.script, f"unexpected write {data.hex(' ')}"
@@ -128,9 +132,9 @@ def axis_config(**kw: object) -> AxisConfig:
 
 
 def link_on(fake: ScriptSerial, timeout_s: float = 0.1) -> AptLink:
-    t = SerialTransport("fake://apt", device="translator", timeout_s=timeout_s)
-    t._ser = fake  # type: ignore[assignment]  # the real transport code, a fake port
-    return AptLink("fake://apt", device="translator", reply_timeout_s=timeout_s, transport=t)
+    url = url_for(fake, "apt", scheme="fake")  # the real transport code opens the fake
+    t = SerialTransport(url, device="translator", timeout_s=timeout_s)
+    return AptLink(url, device="translator", reply_timeout_s=timeout_s, transport=t)
 
 
 # Controller -> host replies, written out byte by byte from the protocol document.
