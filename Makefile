@@ -19,11 +19,12 @@ SEED ?=
 demo: $(STAMP)
 	$(BIN)/alignctl demo --config configs/sim.yaml --out out/demo $(if $(SEED),--seed $(SEED))
 
-# README command 2: lint, the type check, the benchmarks in their small CI mode, the test suite (last, so
+# README command 2: lint, the type check, the import contracts, the benchmarks in their small CI mode, the test suite (last, so
 # its summary closes the output)
 test: $(STAMP)
 	$(BIN)/ruff check alignd drivers tests bench
 	$(BIN)/mypy
+	$(BIN)/lint-imports
 	$(MAKE) --no-print-directory bench-quick
 	$(BIN)/python -m pytest
 

@@ -8,6 +8,7 @@ instrument speaks the same bytes as the real one.
 from __future__ import annotations
 
 import logging
+from typing import Literal
 
 from alignd.config import AligndConfig
 from alignd.errors import ConfigError
@@ -20,7 +21,7 @@ log = logging.getLogger(__name__)
 
 
 def open_rig(cfg: AligndConfig, *, seed: int | None = None,
-             transport: str | None = None) -> Rig:
+             transport: Literal["tcp", "pty", "both"] | None = None) -> Rig:
     """Start what is simulated and create (not yet connect) every axis and camera.
 
     The returned rig's ``close()`` also stops the simulated rig. ``truth`` is set only
@@ -29,11 +30,9 @@ def open_rig(cfg: AligndConfig, *, seed: int | None = None,
     sim_rig = None
     if cfg.sim is not None and (any(c.port == "sim" for c in cfg.controllers)
                                 or any(c.source == "sim" for c in cfg.cameras)):
-        from drivers.sim.rig import SimRig  # only when the config asks for the simulator
+        from alignd.simulated import open_sim_rig  # only when the config asks for it
 
-        sim_rig = SimRig(cfg.controllers, cfg.cameras, cfg.sim, seed=seed,
-                         transport=transport)  # type: ignore[arg-type]
-        sim_rig.start()
+        sim_rig = open_sim_rig(cfg, seed=seed, transport=transport)
     try:
         axes: dict[str, Axis] = {}
         for ctl in cfg.controllers:

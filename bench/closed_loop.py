@@ -35,7 +35,8 @@ from alignd import solve as solver  # noqa: E402
 from alignd.config import AligndConfig, load_config  # noqa: E402
 from alignd.procedures import Tools, default_tools, run_alignment  # noqa: E402
 from alignd.procedures.tools import as_corners  # noqa: E402
-from drivers.sim.direct import build_direct_rig, scene_tracker  # noqa: E402
+from alignd.simulated import build_direct_rig  # noqa: E402
+from drivers.sim.direct import scene_tracker  # noqa: E402
 
 
 def standin_tools(seed: int, sigma_px: float) -> Tools:

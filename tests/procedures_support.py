@@ -12,8 +12,9 @@ from alignd import solve as solver
 from alignd.config import AligndConfig, load_config
 from alignd.procedures import Rig, Tools
 from alignd.procedures.tools import Corners, as_corners
+from alignd.simulated import build_direct_rig
 from drivers.camera import Frame
-from drivers.sim.direct import build_direct_rig, scene_tracker
+from drivers.sim.direct import scene_tracker
 from drivers.sim.world import World
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sim.yaml"

@@ -6,8 +6,7 @@ benchmark run on this direct rig: same world, same kinematics (trapezoidal profi
 backlash, repeatability, encoder counts), no serial round trips. With a ``ManualClock`` the
 axes advance simulated time instead of sleeping, so a run is fast and deterministic.
 
-``build_direct_rig`` returns an ``alignd.procedures.Rig`` (imported inside the function:
-``drivers`` does not depend on ``alignd`` at import time).
+``alignd.simulated.build_direct_rig`` wraps these parts in a procedures ``Rig``.
 """
 
 from __future__ import annotations
@@ -32,8 +31,7 @@ from drivers.sim.rig import physics_for
 from drivers.sim.world import World
 
 if TYPE_CHECKING:
-    from alignd.config import AligndConfig
-    from alignd.procedures.rig import Rig
+    from drivers.sim.render import RenderOptions
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +199,7 @@ class DirectParts:
 def build_direct_axes(controllers: list[ControllerConfig], cameras: list[CameraConfig],
                       sim: SimConfig, seed: int, *, clock: Clock | None = None,
                       homed: bool = True, camera_kind: Literal["render", "scene"] = "render",
-                      render_opts: Any = None) -> DirectParts:
+                      render_opts: RenderOptions | None = None) -> DirectParts:
     """Simulated axes and cameras for a controller/camera config, seeded.
 
     ``homed=True`` models an instrument referenced since power-on, its linear stages at
@@ -240,26 +238,5 @@ def build_direct_axes(controllers: list[ControllerConfig], cameras: list[CameraC
     return DirectParts(axes, sim_axes, world, cams, clock)
 
 
-def build_direct_rig(cfg: AligndConfig, seed: int | None = None, *,
-                     clock: Clock | None = None, homed: bool = True,
-                     camera_kind: Literal["render", "scene"] = "render",
-                     render_opts: Any = None) -> tuple[Rig, World]:
-    """A procedures ``Rig`` over direct simulated axes for an instrument config.
-
-    ``seed`` defaults to ``cfg.sim.seed``; ``clock`` to a ``ManualClock`` (fast and
-    deterministic; pass ``ScaledClock(cfg.sim.time_scale)`` for wall-clock pacing).
-    """
-    from alignd.procedures.rig import Rig  # the one upward reference, kept out of import time
-
-    sim = cfg.sim or SimConfig()
-    parts = build_direct_axes(list(cfg.controllers), list(cfg.cameras), sim,
-                              sim.seed if seed is None else seed, clock=clock, homed=homed,
-                              camera_kind=camera_kind, render_opts=render_opts)
-    rig = Rig(axes=dict(parts.axes), cameras=parts.cameras, truth=parts.world.truth,
-              name=f"{cfg.name} (direct sim, seed {sim.seed if seed is None else seed})")
-    rig.sim_parts = parts  # type: ignore[attr-defined]
-    return rig, parts.world
-
-
 __all__ = ["DirectParts", "DirectSimAxis", "SceneCamera", "SceneDetection",
-           "build_direct_axes", "build_direct_rig", "physics_for", "scene_tracker"]
+           "build_direct_axes", "physics_for", "scene_tracker"]
