@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench-quick venv
+.PHONY: demo test test-newest bench-quick venv
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -30,3 +30,18 @@ test: $(STAMP)
 
 bench-quick: $(STAMP)
 	@set -e; for b in bench/*.py; do echo "== $$b --quick"; $(BIN)/python $$b --quick; done
+
+# The type check and the suite on the newest supported Python as well (CI runs it after
+# `make test`, which uses $(PY)). PY_NEWEST: a Python 3.13; pyenv's when there is one.
+PY_NEWEST ?= $(or $(shell pyenv prefix 3.13 2>/dev/null | sed 's|$$|/bin/python3|'),python3.13)
+VENV_NEWEST := .venv-newest
+$(VENV_NEWEST)/.installed: pyproject.toml constraints.txt
+	test -x $(VENV_NEWEST)/bin/python || $(PY_NEWEST) -m venv $(VENV_NEWEST)
+	$(VENV_NEWEST)/bin/python -m pip install --quiet --upgrade pip
+	$(VENV_NEWEST)/bin/python -m pip install --quiet -c constraints.txt -e '.[dev]'
+	touch $@
+
+test-newest: $(VENV_NEWEST)/.installed
+	$(VENV_NEWEST)/bin/python --version
+	$(VENV_NEWEST)/bin/mypy --python-version 3.13
+	$(VENV_NEWEST)/bin/python -m pytest

@@ -34,7 +34,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeGuard, get_args
+from types import FrameType
+from typing import Any, Literal, Protocol, TextIO, TypeGuard, get_args
 
 from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
@@ -43,10 +44,8 @@ from alignd.config import AligndConfig, config_hash, frame_keeper, load_config
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
+from alignd.procedures.rig import AbortEvent, Rig
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
-
-if TYPE_CHECKING:  # the rig's module (drivers, cameras) loads when the rig is opened
-    from alignd.procedures.rig import Rig
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +89,7 @@ class Procedure(Protocol):
                  run_id: str) -> ProcedureResult: ...
 
 
-RigFactory = Callable[[], "Rig"]  # connected, or connected by the daemon
+RigFactory = Callable[[], Rig]  # connected, or connected by the daemon
 
 
 # ---- systemd notification -----------------------------------------------------------------
@@ -149,17 +148,6 @@ class Notifier:
 
 
 # ---- the worker's jobs --------------------------------------------------------------------
-class AbortEvent(threading.Event):
-    """An abort flag that carries its reason (the procedures report it)."""
-
-    reason: str | None = None
-
-    def request(self, reason: str) -> None:
-        if not self.is_set():
-            self.reason = reason
-            self.set()
-
-
 @dataclass
 class _Job:
     kind: JobKind
@@ -585,7 +573,7 @@ def resolve_state_dir(arg: str | None, env: Mapping[str, str] | None = None) -> 
     return Path(base) / "alignd"
 
 
-def lock_state_dir(state_dir: Path) -> Any:
+def lock_state_dir(state_dir: Path) -> TextIO:
     """Hold ``<state_dir>/alignd.lock`` (flock) for the daemon's lifetime: one daemon per
     history. Without it a second instance would mark the first one's running run as
     interrupted. The kernel drops the lock when the process dies, even by SIGKILL."""
@@ -676,7 +664,7 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     stop = threading.Event()
     received: list[str] = []
 
-    def on_signal(signum: int, _frame: Any) -> None:
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
         received.append(signal.Signals(signum).name)
         stop.set()
 

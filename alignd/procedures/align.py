@@ -121,7 +121,7 @@ class _Run:
         self.abort = abort
         self.recorder = recorder or NullRecorder()
         self.tools = tools
-        self.run_id = run_id or getattr(recorder, "run_id", None) or uuid.uuid4().hex[:12]
+        self.run_id = run_id or uuid.uuid4().hex[:12]
         self.st = _State()
         self.p = cfg.procedure
         self.tol = self.p.tolerance_um

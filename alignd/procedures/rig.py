@@ -26,8 +26,20 @@ class AbortRequested(AligndError):
     """Raised inside a procedure when the operator's abort event is set."""
 
 
+class AbortEvent(threading.Event):
+    """An abort flag that carries its reason (the daemon's; the procedures report it)."""
+
+    reason: str | None = None
+
+    def request(self, reason: str) -> None:
+        if not self.is_set():
+            self.reason = reason
+            self.set()
+
+
 def abort_reason(abort: threading.Event | None) -> str:
-    """The reason an abort event carries (the daemon may attach one), or a default."""
+    """The reason an abort event carries (an ``AbortEvent``'s, or one a caller attached to
+    a plain ``threading.Event``), or a default."""
     reason = getattr(abort, "reason", None)
     return str(reason) if reason else "abort requested"
 

@@ -86,12 +86,6 @@ def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
         from alignd import vision
     except ImportError as exc:
         raise StateError(f"alignd.vision cannot be imported: {exc}") from exc
-    missing = [n for n in ("track_holder", "measure_tilt", "fit_rim") if not hasattr(vision, n)]
-    if missing or not hasattr(solver, "solve_centre"):
-        raise StateError("measuring functions missing: "
-                         + ", ".join([f"alignd.vision.{n}" for n in missing]
-                                     + ([] if hasattr(solver, "solve_centre")
-                                        else ["alignd.solve.solve_centre"])))
 
     def track(frame: Frame) -> Corners:
         return as_corners(vision.track_holder(frame.gray))

@@ -25,7 +25,7 @@ from drivers.camera import Camera, Frame
 from drivers.clock import SYSTEM_CLOCK
 from drivers.config import AxisConfig, CameraConfig, ControllerConfig, SimConfig
 from drivers.errors import TransportError
-from drivers.sim.clock import Clock, ManualClock
+from drivers.sim.clock import Clock, ManualClock, ScaledClock
 from drivers.sim.kinematics import SimAxis
 from drivers.sim.rig import physics_for
 from drivers.sim.world import World
@@ -207,7 +207,7 @@ def build_direct_axes(controllers: list[ControllerConfig], cameras: list[CameraC
     near there, unreferenced, like ``SimRig``.
     """
     clock = clock or ManualClock()
-    scale = 1.0 if isinstance(clock, ManualClock) else float(getattr(clock, "scale", 1.0))
+    scale = clock.scale if isinstance(clock, ScaledClock) else 1.0
     rng = np.random.default_rng(seed)
     streams = rng.spawn(4)
     sim_axes: dict[str, SimAxis] = {}
