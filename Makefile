@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-newest bench-quick venv
+.PHONY: demo test test-newest bench-quick venv stress
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -45,3 +45,8 @@ test-newest: $(VENV_NEWEST)/.installed
 	$(VENV_NEWEST)/bin/python --version
 	$(VENV_NEWEST)/bin/mypy --python-version 3.13
 	$(VENV_NEWEST)/bin/python -m pytest
+
+# the whole suite 5 times with one CPU-bound process per core beside it (never flakes)
+RUNS ?= 5
+stress: $(STAMP)
+	@mkdir -p out; RUNS=$(RUNS) PY=$(BIN)/python tests/stress.sh

@@ -4,14 +4,18 @@ Why the standard library (``socketserver`` + ``http.server``) rather than aiohtt
 daemon is built around one worker thread that owns the hardware, and the API sees a handful
 of requests a minute; a thread per connection fits that model with no event loop to bridge.
 Each connection's socket has a read timeout and a total deadline enforced by a reaper
-thread (a client that dribbles bytes cannot hold a thread), the number of connections is
-capped, bodies are size-limited, and ``SO_PEERCRED`` is read straight from the accepted
-socket. No extra dependency is needed on a lab PC or a Raspberry Pi.
+thread (a client that dribbles bytes cannot hold a thread), connections are admitted by
+``alignd.admission`` (per-user caps, slots kept for peers who may control, refusals logged
+at a bounded rate), bodies are size- and depth-limited, and ``SO_PEERCRED`` is read straight
+from the accepted socket. No extra dependency is needed on a lab PC or a Raspberry Pi.
 
 Authorisation: anyone who can connect may read (status, history, runs, frames); starting,
 aborting or resetting needs root, the daemon's own user, or membership of
-``daemon.operator_group`` (``null``: anyone who can connect). Group membership comes from
-the peer's supplementary groups at connect time (``SO_PEERGROUPS``), else the group database.
+``daemon.operator_group`` (``null``: nobody else). Group membership is the connecting
+process's own groups as the kernel has them (``SO_PEERGROUPS``), never the group database:
+a process that dropped a group has dropped its rights. If the kernel cannot say, only the
+primary group counts (fail closed). Control requests are authorised before their body is
+read.
 
 Endpoints (all JSON unless noted; errors are ``{"error": CODE, "message": TEXT}``):
 ``GET /status``, ``GET /history?limit=N``, ``GET /runs/ID``,
@@ -23,6 +27,8 @@ Endpoints (all JSON unless noted; errors are ``{"error": CODE, "message": TEXT}`
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import grp
 import json
 import logging
@@ -42,15 +48,21 @@ from pathlib import Path
 from typing import Any, Protocol
 from urllib.parse import parse_qs, urlsplit
 
+from alignd.admission import Admission, Limits, RefusalLog, Slot
 from alignd.errors import AligndError, StateError
 
 log = logging.getLogger(__name__)
 
 MAX_BODY_BYTES = 64 * 1024
 REQUEST_TIMEOUT_S = 10.0  # whole request (line, headers, body) must arrive within this
-MAX_CONNECTIONS = 32
+MAX_JSON_DEPTH = 8  # request bodies are flat objects; deeper nesting is refused (400)
+LISTEN_BACKLOG = 128  # connects waiting for accept(); a burst must not be refused
 MAX_WAIT_S = 30.0  # longest long-poll a client may ask for
 SO_PEERGROUPS = getattr(socket, "SO_PEERGROUPS", 59)  # Linux >= 4.13
+_PY_GETSOCKOPT_MAX = 1024  # CPython's getsockopt() accepts a buffer of at most 1024 bytes
+_NGROUPS_MAX = 65536  # Linux
+CONTROL_ACTIONS = {"align": "start an alignment", "check": "start a check",
+                   "abort": "abort a run", "reset": "reset the daemon"}
 _STARTED_BY = re.compile(r"^[a-z][a-z0-9_.-]{0,31}$")
 _HASH = re.compile(r"^[0-9a-f]{64}$")
 
@@ -76,6 +88,7 @@ class Peer:
     uid: int
     gid: int
     groups: frozenset[int] = field(default_factory=frozenset)
+    groups_known: bool = True  # False: the kernel did not report the supplementary groups
 
     @property
     def user(self) -> str:
@@ -89,17 +102,42 @@ class Peer:
 
 
 def peer_credentials(sock: socket.socket) -> Peer:
-    """The connecting process's pid/uid/gid and supplementary groups."""
+    """The connecting process's pid/uid/gid and supplementary groups (as they were when
+    it connected). Without ``SO_PEERGROUPS`` only the primary group is known: fail closed."""
     pid, uid, gid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
                                                         struct.calcsize("3i")))
-    groups: set[int] = {gid}
     try:
-        raw = sock.getsockopt(socket.SOL_SOCKET, SO_PEERGROUPS, 4 * 1024)
-        groups.update(struct.unpack(f"{len(raw) // 4}I", raw[: len(raw) // 4 * 4]))
-    except OSError:  # old kernel: fall back to the group database
-        with contextlib.suppress(KeyError, OSError):
-            groups.update(os.getgrouplist(pwd.getpwuid(uid).pw_name, gid))
-    return Peer(pid=pid, uid=uid, gid=gid, groups=frozenset(groups))
+        groups = peer_groups(sock)
+    except OSError as exc:
+        log.warning("cannot read the supplementary groups of pid %d (uid %d): %s; only its "
+                    "primary group %d counts", pid, uid, exc, gid)
+        return Peer(pid=pid, uid=uid, gid=gid, groups=frozenset({gid}), groups_known=False)
+    return Peer(pid=pid, uid=uid, gid=gid, groups=groups | {gid})
+
+
+def peer_groups(sock: socket.socket) -> frozenset[int]:
+    """``SO_PEERGROUPS``: up to 256 groups through Python's ``getsockopt``; a peer in more
+    (the kernel answers ERANGE) is read with libc's ``getsockopt`` and a buffer for
+    NGROUPS_MAX groups. Raises ``OSError`` when the kernel cannot tell."""
+    try:
+        raw = sock.getsockopt(socket.SOL_SOCKET, SO_PEERGROUPS, _PY_GETSOCKOPT_MAX)
+    except OSError as exc:
+        if exc.errno != errno.ERANGE:
+            raise
+        raw = _getsockopt_bytes(sock.fileno(), SO_PEERGROUPS, 4 * _NGROUPS_MAX)
+    n = len(raw) // 4
+    return frozenset(struct.unpack(f"{n}I", raw[: 4 * n]))
+
+
+def _getsockopt_bytes(fd: int, option: int, size: int) -> bytes:
+    """libc ``getsockopt(fd, SOL_SOCKET, option)`` with a buffer of ``size`` bytes."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    buf = ctypes.create_string_buffer(size)
+    length = ctypes.c_uint32(size)  # socklen_t
+    if libc.getsockopt(fd, socket.SOL_SOCKET, option, buf, ctypes.byref(length)) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, os.strerror(err))
+    return buf.raw[: length.value]
 
 
 class Authoriser:
@@ -118,15 +156,22 @@ class Authoriser:
                             "control alignd", operator_group, sorted(self.allow_uids))
 
     def may_control(self, peer: Peer) -> bool:
-        if peer.uid == 0 or peer.uid in self.allow_uids or self.operator_group is None:
+        if peer.uid == 0 or peer.uid in self.allow_uids:
             return True
         return self.operator_gid is not None and self.operator_gid in peer.groups
 
     def require_control(self, peer: Peer, action: str) -> None:
-        if not self.may_control(peer):
-            raise Refused(HTTPStatus.FORBIDDEN, "forbidden",
-                          f"{peer.describe()} may not {action}: needs membership of the "
-                          f"operator group {self.operator_group!r}")
+        if self.may_control(peer):
+            return
+        if self.operator_group is None:
+            need = ("only root and the daemon's user may (no daemon.operator_group is "
+                    "configured)")
+        else:
+            need = f"needs membership of the operator group {self.operator_group!r}"
+            if not peer.groups_known:
+                need += " (the kernel did not report the process's groups)"
+        raise Refused(HTTPStatus.FORBIDDEN, "forbidden",
+                      f"{peer.describe()} may not {action}: {need}")
 
 
 class Controller(Protocol):
@@ -236,6 +281,11 @@ class _Handler(BaseHTTPRequestHandler):
         if len(data) != length:
             raise Refused(HTTPStatus.REQUEST_TIMEOUT, "timeout",
                           f"request body incomplete ({len(data)} of {length} bytes)")
+        depth = json_depth(data)
+        if depth > MAX_JSON_DEPTH:
+            raise Refused(HTTPStatus.BAD_REQUEST, "bad_json",
+                          f"body is nested {depth} levels deep; at most {MAX_JSON_DEPTH} "
+                          "are accepted")
         try:
             body = json.loads(data)
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -249,6 +299,9 @@ class _Handler(BaseHTTPRequestHandler):
         try:
             url = urlsplit(self.path)
             query = {k: v[-1] for k, v in parse_qs(url.query, max_num_fields=20).items()}
+            action = CONTROL_ACTIONS.get(url.path.strip("/"))
+            if method == "POST" and action is not None:  # before a byte of the body is read
+                self.server.authoriser.require_control(self.server.peer(self.request), action)
             body = self._read_body() if method == "POST" else {}
             # the request has fully arrived: a long-poll may now outlast the request deadline
             self.server._deadline(self.request, None)
@@ -288,17 +341,22 @@ class ApiServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
     daemon_threads = True
     block_on_close = False
     allow_reuse_address = False
+    request_queue_size = LISTEN_BACKLOG  # listen() backlog
 
     def __init__(self, path: str | Path, controller: Controller, authoriser: Authoriser, *,
-                 max_connections: int = MAX_CONNECTIONS,
+                 limits: Limits | None = None,
                  request_timeout_s: float = REQUEST_TIMEOUT_S,
-                 max_body: int = MAX_BODY_BYTES, mode: int = 0o666) -> None:
+                 max_body: int = MAX_BODY_BYTES, mode: int = 0o666,
+                 refusal_log: RefusalLog | None = None) -> None:
         self.path = Path(path)
         self.controller = controller
         self.authoriser = authoriser
         self.request_timeout_s = request_timeout_s
         self.max_body = max_body
-        self._slots = threading.BoundedSemaphore(max_connections)
+        self.admission = Admission(limits)
+        self.refusals = refusal_log or RefusalLog()
+        self._conns: dict[socket.socket, tuple[Peer, Slot]] = {}
+        self._conns_lock = threading.Lock()
         self._deadlines: dict[socket.socket, float] = {}
         self._dl_lock = threading.Lock()
         self._stopping = threading.Event()
@@ -330,33 +388,58 @@ class ApiServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
 
     # ---- connection limits ------------------------------------------------------------
     def process_request(self, request: Any, client_address: Any) -> None:
-        if not self._slots.acquire(blocking=False):
-            log.warning("API: too many connections; refusing one")
-            with contextlib.suppress(OSError):
-                request.settimeout(0.5)
-                msg = b'{"error": "overloaded", "message": "too many connections"}\n'
-                request.sendall(b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: "
-                                b"application/json\r\nConnection: close\r\nContent-Length: "
-                                + str(len(msg)).encode() + b"\r\n\r\n" + msg)
-                # discard what already arrived, so closing does not reset the connection
-                # before the client reads the reply (never block the accept loop)
-                request.setblocking(False)
-                with contextlib.suppress(BlockingIOError):
-                    while request.recv(65536):
-                        pass
-            self.shutdown_request(request)
+        """Admit or refuse a new connection, by who is connecting (see ``alignd.admission``)."""
+        try:
+            peer = peer_credentials(request)
+        except OSError as exc:  # no credentials: an unprivileged stranger
+            log.warning("API: cannot read peer credentials: %s", exc)
+            peer = Peer(pid=0, uid=-1, gid=-1, groups_known=False)
+        slot, why = self.admission.admit(peer.uid, self.authoriser.may_control(peer))
+        if slot is None:
+            self.refusals.refused(peer.uid, why)
+            self._refuse(request, f"too many connections: {why}")
             return
+        with self._conns_lock:
+            self._conns[request] = (peer, slot)
         try:
             super().process_request(request, client_address)
         except BaseException:
-            self._slots.release()
+            self._forget(request)
             raise
 
     def process_request_thread(self, request: Any, client_address: Any) -> None:
         try:
             super().process_request_thread(request, client_address)
         finally:
-            self._slots.release()
+            self._forget(request)
+
+    def _forget(self, request: socket.socket) -> None:
+        with self._conns_lock:
+            entry = self._conns.pop(request, None)
+        if entry is not None:
+            self.admission.release(entry[1])
+
+    def peer(self, request: socket.socket) -> Peer:
+        """Who is on the other end of an admitted connection (read once, at accept)."""
+        with self._conns_lock:
+            entry = self._conns.get(request)
+        return entry[0] if entry is not None else peer_credentials(request)
+
+    def _refuse(self, request: socket.socket, message: str) -> None:
+        """503 at once, without reading the request; never blocks the accept loop."""
+        with contextlib.suppress(OSError):
+            request.settimeout(0.5)
+            msg = (json.dumps({"error": "overloaded", "message": message}) + "\n").encode()
+            request.sendall(b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: "
+                            b"application/json\r\nConnection: close\r\nContent-Length: "
+                            + str(len(msg)).encode() + b"\r\n\r\n" + msg)
+            # discard what already arrived, so closing does not reset the connection
+            # before the client reads the reply
+            request.setblocking(False)
+            with contextlib.suppress(BlockingIOError):
+                while request.recv(65536):
+                    pass
+        self.shutdown_request(request)
 
     def _deadline(self, sock: socket.socket, seconds: float | None) -> None:
         with self._dl_lock:
@@ -368,6 +451,7 @@ class ApiServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
     def _reap(self) -> None:
         """Cut connections whose request has not fully arrived by its deadline."""
         while not self._stopping.wait(0.25):
+            self.refusals.flush()
             now = time.monotonic()
             with self._dl_lock:
                 late = [s for s, t in self._deadlines.items() if t < now]
@@ -412,11 +496,9 @@ class ApiServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
                     raise Refused(HTTPStatus.NOT_FOUND, "no_such_frame", f"no frame {digest}")
                 return HTTPStatus.OK, data
         elif method == "POST":
-            actions = {"align": "start an alignment", "check": "start a check",
-                       "abort": "abort a run", "reset": "reset the daemon"}
-            if len(parts) == 1 and parts[0] in actions:
-                peer = peer_credentials(sock)
-                self.authoriser.require_control(peer, actions[parts[0]])
+            if len(parts) == 1 and parts[0] in CONTROL_ACTIONS:
+                peer = self.peer(sock)
+                self.authoriser.require_control(peer, CONTROL_ACTIONS[parts[0]])
                 if parts[0] in ("align", "check"):
                     started_by = body.get("started_by", "user")
                     if not isinstance(started_by, str) or not _STARTED_BY.match(started_by):
@@ -435,6 +517,29 @@ class ApiServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
             raise Refused(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed",
                           f"{method} {path} is not allowed")
         raise Refused(HTTPStatus.NOT_FOUND, "not_found", f"no resource {path}")
+
+
+def json_depth(data: bytes) -> int:
+    """How deeply ``[`` / ``{`` nest in a JSON text (brackets inside strings do not count);
+    measured before parsing, so a hostile body never reaches the recursive parser."""
+    depth = deepest = 0
+    in_string = escaped = False
+    for byte in data:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif byte == 0x5C:  # backslash
+                escaped = True
+            elif byte == 0x22:  # quote
+                in_string = False
+        elif byte == 0x22:
+            in_string = True
+        elif byte in (0x5B, 0x7B):  # [ {
+            depth += 1
+            deepest = max(deepest, depth)
+        elif byte in (0x5D, 0x7D):  # ] }
+            depth -= 1
+    return deepest
 
 
 def _int_arg(query: dict[str, str], key: str, default: int, lo: int, hi: int) -> int:

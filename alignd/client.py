@@ -3,14 +3,22 @@
 Socket resolution (contract): ``--socket PATH``, else ``$ALIGND_SOCKET``, else the
 configured default (``daemon.socket``, ``/run/alignd/alignd.sock`` unless a config says
 otherwise).
+
+A refused connect (no listener yet, a full listen backlog) and a 503 "overloaded" reply
+(sent before the daemon reads the request, so nothing was acted upon) are retried for up to
+``retry_s`` (2 s by default); after that the server's own message is shown.
 """
 
 from __future__ import annotations
 
+import errno
 import http.client
 import json
 import os
 import socket
+import struct
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +28,14 @@ from alignd.errors import AligndError
 
 class DaemonUnreachable(AligndError):
     """No daemon answers on the socket (names the socket and why)."""
+
+    retryable = False
+
+
+class _Refused(DaemonUnreachable):
+    """The connect itself was refused (no listener, or its backlog is full): transient."""
+
+    retryable = True
 
 
 class ApiError(AligndError):
@@ -43,10 +59,18 @@ class _UnixConnection(http.client.HTTPConnection):
         self._path = path
 
     def connect(self) -> None:
+        """A blocking connect that waits (up to the timeout) in the kernel's first-come
+        queue for room in the daemon's listen backlog: a socket with a Python timeout is
+        non-blocking and would be turned away at once whenever a burst of other clients
+        fills the backlog, however briefly."""
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        sock.settimeout(self.timeout)
         try:
+            if self.timeout is not None and self.timeout > 0:
+                sec = int(self.timeout)
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, struct.pack(
+                    "ll", sec, int((self.timeout - sec) * 1e6)))
             sock.connect(self._path)
+            sock.settimeout(self.timeout)
         except OSError:
             sock.close()
             raise
@@ -56,20 +80,51 @@ class _UnixConnection(http.client.HTTPConnection):
 class Client:
     """One request per connection; every method returns the decoded JSON reply."""
 
-    def __init__(self, socket_path: str | Path, timeout_s: float = 10.0) -> None:
+    def __init__(self, socket_path: str | Path, timeout_s: float = 10.0, retry_s: float = 2.0,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
         self.socket_path = str(socket_path)
         self.timeout_s = timeout_s
+        self.retry_s = retry_s
+        self._sleep = sleep
 
     def request(self, method: str, path: str, body: dict[str, Any] | None = None,
                 timeout_s: float | None = None, raw: bool = False) -> Any:
+        """One request; a refused connect or an "overloaded" 503 is retried briefly."""
+        deadline = time.monotonic() + self.retry_s
+        delay = 0.05
+        while True:
+            try:
+                return self._request_once(method, path, body, timeout_s, raw)
+            except (_Refused, ApiError) as exc:
+                transient = isinstance(exc, _Refused) or (
+                    exc.status == 503 and exc.code == "overloaded")
+                if not transient or time.monotonic() + delay > deadline:
+                    raise
+            self._sleep(delay)
+            delay = min(2 * delay, 0.5)
+
+    def _request_once(self, method: str, path: str, body: dict[str, Any] | None,
+                      timeout_s: float | None, raw: bool) -> Any:
         conn = _UnixConnection(self.socket_path, timeout_s or self.timeout_s)
         try:
             data = None if body is None else json.dumps(body).encode()
             headers = {"Content-Type": "application/json"} if data is not None else {}
             try:
-                conn.request(method, path, body=data, headers=headers)
+                try:
+                    conn.request(method, path, body=data, headers=headers)
+                except (BrokenPipeError, ConnectionResetError):
+                    if conn.sock is None:
+                        raise
+                    # the daemon may have refused the connection (503) and closed it before
+                    # reading the request: its reply is still there to read
                 resp = conn.getresponse()
                 payload = resp.read()
+            except BlockingIOError as exc:
+                if exc.errno != errno.EAGAIN:
+                    raise DaemonUnreachable(f"cannot talk to alignd at {self.socket_path}: "
+                                            f"{exc}") from None
+                raise _Refused(f"cannot reach alignd at {self.socket_path}: it is not "
+                               "accepting connections (listen queue full)") from None
             except FileNotFoundError:
                 raise DaemonUnreachable(f"cannot reach alignd at {self.socket_path}: no such "
                                         "socket (is the daemon running? see --socket, "
@@ -78,8 +133,8 @@ class Client:
                 raise DaemonUnreachable(f"cannot reach alignd at {self.socket_path}: "
                                         "permission denied") from None
             except ConnectionRefusedError:
-                raise DaemonUnreachable(f"cannot reach alignd at {self.socket_path}: "
-                                        "connection refused (stale socket?)") from None
+                raise _Refused(f"cannot reach alignd at {self.socket_path}: connection "
+                               "refused (is the daemon running? stale socket?)") from None
             except TimeoutError:
                 raise DaemonUnreachable(f"alignd at {self.socket_path} did not answer "
                                         f"{method} {path} in time") from None

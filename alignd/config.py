@@ -129,6 +129,39 @@ def frame_keeper(cfg: AligndConfig) -> Callable[[str], bool]:
     return keep
 
 
+RECORDS_MARGIN_BYTES = 4 * 1024 * 1024  # a run's database records (sweeps, events, result)
+DEFAULT_FRAME_PX = (1280, 720)  # a camera whose config gives no size
+
+
+def run_footprint(cfg: AligndConfig) -> tuple[int, str]:
+    """Disk space one run may need at most, and how that was reckoned (for messages).
+
+    The frames dominate: an ``align`` may measure up to ``max_iterations`` times with a
+    verification sweep after each, every sweep ``sweep_steps x frames_per_step`` frames,
+    plus the calibration (2 stages x 4 positions, refreshed up to ``MAX_CAL_REFRESHES``
+    times). A frame file is a PNG, at most about its raw size: width x height, x3 for a
+    real camera that may deliver colour. ``daemon.keep_frames`` says which are files."""
+    from alignd.procedures.align import MAX_CAL_REFRESHES
+
+    p = cfg.procedure
+    sweeps = 2 * p.max_iterations
+    if cfg.daemon.keep_frames == "all":
+        frames = sweeps * p.sweep_steps * p.frames_per_step + \
+            (1 + MAX_CAL_REFRESHES) * 2 * 4 * p.frames_per_step
+    elif cfg.daemon.keep_frames == "report":
+        frames = sweeps
+    else:
+        frames = 0
+    top = cfg.camera("top")
+    w, h = (top.width, top.height) if top and top.width and top.height else DEFAULT_FRAME_PX
+    depth = 1 if top is not None and top.source == "sim" else 3
+    frame_bytes = w * h * depth
+    total = frames * frame_bytes + RECORDS_MARGIN_BYTES
+    how = (f"{frames} frames of {w}x{h}x{depth} bytes (keep_frames {cfg.daemon.keep_frames}) "
+           f"+ {RECORDS_MARGIN_BYTES / 2**20:.0f} MiB of records")
+    return total, how
+
+
 def _key_path(loc: tuple[object, ...]) -> str:
     return ".".join(str(p) for p in loc) or "(top level)"
 

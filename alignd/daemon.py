@@ -8,7 +8,9 @@ axes itself, because a stopped stage matters more than ownership).
 
 States: ``starting`` (connecting the rig), ``idle``, ``aligning``, ``checking``, ``fault``
 (the hardware is in an unknown state: a run ended in a fault or the rig could not be
-opened; ``POST /reset`` / ``alignctl reset`` reconnects). A run is recorded in the store
+opened; ``POST /reset`` / ``alignctl reset`` re-reads the config file, validated first (a
+bad file is refused with the reason and the old config stays), and reconnects). A run is
+recorded in the store
 before it is queued, so a run that cannot be recorded never starts. A run left ``running``
 by a killed daemon is marked ``interrupted`` at the next start and never resumed.
 
@@ -40,7 +42,7 @@ from typing import Any, Literal, Protocol, TextIO, TypeGuard, get_args
 from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
 from alignd.client import resolve_socket
-from alignd.config import AligndConfig, config_hash, frame_keeper, load_config
+from alignd.config import AligndConfig, config_hash, frame_keeper, load_config, run_footprint
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
@@ -89,7 +91,7 @@ class Procedure(Protocol):
                  run_id: str) -> ProcedureResult: ...
 
 
-RigFactory = Callable[[], Rig]  # connected, or connected by the daemon
+RigFactory = Callable[[AligndConfig], Rig]  # config -> rig (connected, or by the daemon)
 
 
 # ---- systemd notification -----------------------------------------------------------------
@@ -114,9 +116,15 @@ class Notifier:
             return False
         try:
             with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
+                # never wait: a receiver whose queue is full (it is not reading) would
+                # otherwise block the worker, and with it every stop
+                s.setblocking(False)
                 s.connect(self.address)
                 s.sendall(message.encode())
             return True
+        except BlockingIOError:
+            log.debug("sd_notify to %r dropped (its queue is full): %r", self.address, message)
+            return False
         except OSError as exc:
             log.warning("sd_notify to %r failed: %s", self.address, exc)
             return False
@@ -155,6 +163,7 @@ class _Job:
     started_by: str = "user"
     user: str | None = None
     abort: AbortEvent = field(default_factory=AbortEvent)
+    config: AligndConfig | None = None  # reset: the config to reconnect with
 
 
 def _result_dict(result: ProcedureResult) -> tuple[dict[str, Any], Any]:
@@ -184,8 +193,12 @@ class Daemon:
     def __init__(self, cfg: AligndConfig, store: Store, rig_factory: RigFactory, *,
                  procedures: Mapping[str, Procedure] | None = None,
                  notifier: Notifier | None = None, socket_path: str = "",
-                 stop_timeout_s: float = DEFAULT_STOP_TIMEOUT_S) -> None:
+                 stop_timeout_s: float = DEFAULT_STOP_TIMEOUT_S,
+                 config_path: str | Path | None = None) -> None:
         self.cfg = cfg
+        self.config_path = None if config_path is None else Path(config_path)
+        # called with a newly loaded config (by reset), before the rig is reopened
+        self.on_config: list[Callable[[AligndConfig], None]] = []
         self.store = store
         self.rig_factory = rig_factory
         self.procedures = dict(procedures) if procedures is not None else default_procedures()
@@ -270,6 +283,8 @@ class Daemon:
                     break
                 if job.kind == "reset":
                     self._close_rig()
+                    if job.config is not None:
+                        self._apply_config(job.config)
                     self._open_rig()
                 else:
                     self._run(job)
@@ -284,7 +299,7 @@ class Daemon:
         self._set_state("starting")
         rig = None
         try:
-            rig = self.rig_factory()
+            rig = self.rig_factory(self.cfg)
             if not rig.identities:
                 rig.connect()
         except Exception as exc:  # any failure leaves the daemon up, in fault, saying why
@@ -303,6 +318,18 @@ class Daemon:
         self._devices = _identities(rig)
         self._set_state("idle")
         log.info("rig ready: %s", ", ".join(sorted(self._devices)) or "(no identities)")
+
+    def _apply_config(self, cfg: AligndConfig) -> None:
+        """Use a newly loaded config from now on (worker thread, no run in progress)."""
+        old = self.config_hash
+        with self._lock:
+            self.cfg = cfg
+            self.config_hash = config_hash(cfg)
+            self._config_json = cfg.model_dump_json()
+        for fn in self.on_config:
+            fn(cfg)
+        log.info("config %s reloaded: hash %s -> %s", self.config_path, old[:12],
+                 self.config_hash[:12])
 
     def _close_rig(self) -> None:
         rig, self._rig = self._rig, None
@@ -418,6 +445,7 @@ class Daemon:
 
     # ---- the API's Controller -------------------------------------------------------
     def status(self) -> dict[str, Any]:
+        refused = self.store.space_problem()  # why a new run would be refused (disk space)
         with self._lock:
             job = self._current
             return {
@@ -430,6 +458,7 @@ class Daemon:
                 "config_hash": self.config_hash, "devices": self._devices,
                 "pid": os.getpid(), "uptime_s": round(time.monotonic() - self._started_at, 1),
                 "state_dir": str(self.store.state_dir), "socket": self.socket_path,
+                "runs_refused": refused,
             }
 
     def history(self, limit: int) -> list[dict[str, Any]]:
@@ -519,17 +548,44 @@ class Daemon:
         return {"aborted": job.run_id, "message": reason}
 
     def reset(self, peer: Peer) -> dict[str, Any]:
+        """Re-read the config file (a bad one is refused: the old config stays) and
+        reconnect the hardware with it."""
+        self._check_resettable()
+        cfg, note = self._reload_config()
         with self._cond:
-            if self._current is not None or self._state in BUSY_STATES:
-                raise Refused(HTTPStatus.CONFLICT, "busy", "busy: abort the run first",
-                              state=self._state)
-            if self._stopping.is_set():
-                raise Refused(HTTPStatus.SERVICE_UNAVAILABLE, "stopping", "alignd is stopping")
-            self._require_worker()
+            self._check_resettable()
             self._state = "starting"
-        log.warning("reset requested by %s: reconnecting the rig", peer.describe())
-        self._jobs.put(_Job(kind="reset"))
-        return {"state": "starting", "message": "reconnecting the hardware"}
+        log.warning("reset requested by %s: reconnecting the rig (%s)", peer.describe(), note)
+        self._jobs.put(_Job(kind="reset", config=cfg))
+        return {"state": "starting", "message": f"reconnecting the hardware ({note})"}
+
+    def _check_resettable(self) -> None:
+        if self._current is not None or self._state in BUSY_STATES:
+            raise Refused(HTTPStatus.CONFLICT, "busy", "busy: abort the run first",
+                          state=self._state)
+        if self._stopping.is_set():
+            raise Refused(HTTPStatus.SERVICE_UNAVAILABLE, "stopping", "alignd is stopping")
+        self._require_worker()
+
+    def _reload_config(self) -> tuple[AligndConfig | None, str]:
+        """The config file, loaded and validated now, and a note on what changed."""
+        if self.config_path is None:
+            return None, "no config file to re-read"
+        try:
+            cfg = load_config(self.config_path)
+        except ConfigError as exc:
+            log.error("reset refused: %s", exc)
+            raise Refused(HTTPStatus.CONFLICT, "config",
+                          f"reset refused, the config file is not valid: {exc}\nalignd keeps "
+                          f"the config it has (hash {self.config_hash[:12]}); fix the file "
+                          "and reset again") from None
+        new = config_hash(cfg)
+        if new == self.config_hash:
+            return None, f"config {self.config_path} unchanged"
+        note = f"config {self.config_path} reloaded, hash {new[:12]}"
+        if cfg.daemon.socket != self.cfg.daemon.socket:
+            note += "; the new daemon.socket takes effect when alignd restarts"
+        return cfg, note
 
     def _require_worker(self) -> None:
         if not self._worker.is_alive():
@@ -544,7 +600,8 @@ def status_line(st: Mapping[str, Any]) -> str:
     if state == "fault":
         return f"fault: {st.get('fault')}"
     if state not in BUSY_STATES:
-        return str(state)
+        refused = st.get("runs_refused")
+        return f"{state}; runs refused: {refused}" if refused else str(state)
     text = f"{state} (run {st.get('run_id')})"
     p = st.get("progress") or {}
     bits = []
@@ -598,6 +655,11 @@ def lock_state_dir(state_dir: Path) -> TextIO:
     return f
 
 
+def use_space_floor(store: Store, cfg: AligndConfig) -> None:
+    """Refuse runs unless there is room for one run of this config (its frames)."""
+    store.min_free_bytes, store.space_note = run_footprint(cfg)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="alignd", description="The alignment daemon (runs in the "
                                 "foreground; systemd runs it the same way).")
@@ -633,19 +695,23 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
         print(f"alignd: refusing to start: {exc}", file=sys.stderr)
         return EXIT_FAULT
     store = Store(state_dir)
+    use_space_floor(store, cfg)
     try:
         store.open()
-        store.check_writable()
         store.mark_interrupted()
     except StoreError as exc:
-        print(f"alignd: refusing to start, no run could be recorded: {exc}", file=sys.stderr)
+        print(f"alignd: refusing to start, the history cannot be used: {exc}", file=sys.stderr)
         store.close()
         lock.close()
         return EXIT_FAULT
+    try:  # short of space: start anyway, say so in status, refuse runs until there is room
+        store.check_writable()
+    except StoreError as exc:
+        log.warning("runs are refused until this is fixed: %s", exc)
     if rig_factory is None:
         seed = args.seed
 
-        def rig_factory() -> Rig:
+        def rig_factory(cfg: AligndConfig) -> Rig:
             from alignd.hardware import open_rig
 
             return open_rig(cfg, seed=seed)
@@ -653,8 +719,15 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     notifier = Notifier(watchdog=cfg.daemon.watchdog)
     try:
         daemon = Daemon(cfg, store, rig_factory, procedures=procedures, notifier=notifier,
-                        socket_path=socket_path, stop_timeout_s=args.stop_timeout)
+                        socket_path=socket_path, stop_timeout_s=args.stop_timeout,
+                        config_path=args.config)
         server = ApiServer(socket_path, daemon, Authoriser(cfg.daemon.operator_group))
+
+        def use_operator_group(new: AligndConfig) -> None:
+            server.authoriser = Authoriser(new.daemon.operator_group)
+
+        daemon.on_config.append(use_operator_group)
+        daemon.on_config.append(lambda new: use_space_floor(store, new))
     except (AligndError, ImportError, OSError) as exc:
         print(f"alignd: cannot start on {socket_path}: {exc}", file=sys.stderr)
         store.close()
@@ -672,8 +745,8 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     signal.signal(signal.SIGINT, on_signal)
     log.info("alignd %s: config %s (%s), state %s, socket %s", __version__, args.config,
              daemon.config_hash[:12], state_dir, socket_path)
+    daemon.start()  # the worker first: a request queued on the socket may be served at once
     server.start()
-    daemon.start()
     notifier.ready("starting")
     while not stop.wait(0.5):
         pass

@@ -301,7 +301,9 @@ def render_report(run: dict[str, Any], image: np.ndarray | None) -> np.ndarray:
 
 def write_report(run: dict[str, Any], out_dir: Path, image: np.ndarray | None
                  ) -> dict[str, Path]:
-    """Write ``run-ID.png`` and ``run-ID.json`` into ``out_dir`` atomically."""
+    """Write ``run-ID.png`` and ``run-ID.json`` into ``out_dir``, each atomically, the
+    JSON last: a report whose JSON is there is complete (a kill in between leaves at most
+    a new picture beside the old record)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     png = out_dir / f"run-{run['id']}.png"
@@ -309,7 +311,7 @@ def write_report(run: dict[str, Any], out_dir: Path, image: np.ndarray | None
     ok, buf = cv2.imencode(".png", render_report(run, image))
     if not ok:
         raise ValueError(f"cannot encode the report image for run {run.get('id')}")
+    atomic_write_bytes(png, buf.tobytes())
     atomic_write_bytes(js, (json.dumps(jsonable(run), indent=1, allow_nan=False) + "\n"
                             ).encode())
-    atomic_write_bytes(png, buf.tobytes())
     return {"png": png, "json": js}

@@ -11,12 +11,19 @@ One writer: the daemon owns one write connection (serialised by a lock); readers
 threads) open short-lived read-only connections and see a consistent WAL snapshot.
 A run found still ``running`` when the daemon starts was cut off by a crash or SIGKILL and
 is marked ``interrupted``; nothing restarts it.
+
+A full disk must not cost a run its outcome: the store keeps ``reserve`` (a file of
+``reserve_bytes`` of allocated blocks) and gives it up only when a record that ends a run
+(its verdict and reason, or "interrupted") cannot be written otherwise. A new run is
+refused until there is room for a whole run again (``min_free_bytes``, derived from the
+configured sweep by ``alignd.config.run_footprint``) and the reserve is back.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import logging
 import math
@@ -40,8 +47,10 @@ SCHEMA_VERSION = 1
 DB_NAME = "history.sqlite3"
 FRAMES_DIR = "frames"
 RUN_KINDS = ("align", "check")
-# a run keeps every sweep frame (~0.1-0.5 MB each as PNG): refuse to start one without room
+# room a run needs, when no config says better (the daemon uses alignd.config.run_footprint)
 MIN_FREE_BYTES = 64 * 1024 * 1024
+RESERVE_NAME = "reserve"
+RESERVE_BYTES = 4 * 1024 * 1024  # kept allocated to record a run's end on a full disk
 INTERRUPTED_REASON = "daemon stopped before the run finished (crash, SIGKILL or power loss)"
 
 _SCHEMA = """
@@ -107,6 +116,14 @@ CREATE INDEX runs_status ON runs(status);
 
 class StoreError(AligndError):
     """The history cannot be read or written (names the database file and the operation)."""
+
+    disk_full = False  # the write failed for lack of space
+
+
+def _is_full(exc: BaseException) -> bool:
+    if isinstance(exc, sqlite3.Error):
+        return exc.sqlite_errorcode == sqlite3.SQLITE_FULL or "disk is full" in str(exc)
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
 
 
 def utc_now() -> str:
@@ -179,6 +196,19 @@ def atomic_write_bytes(path: Path, data: bytes, mode: int = 0o644) -> None:
     fsync_dir(path.parent)
 
 
+def _allocate(fd: int, size: int) -> None:
+    """Real blocks for ``size`` bytes (not a sparse file that would need them later)."""
+    try:
+        os.posix_fallocate(fd, 0, size)
+        return
+    except OSError as exc:
+        if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL):
+            raise
+    chunk = b"\0" * (1 << 20)
+    for offset in range(0, size, len(chunk)):
+        os.write(fd, chunk[: size - offset])
+
+
 def encode_png(image: np.ndarray) -> bytes:
     import cv2
 
@@ -191,11 +221,15 @@ def encode_png(image: np.ndarray) -> bytes:
 class Store:
     """The run history of one instrument: ``<state_dir>/history.sqlite3`` + ``frames/``."""
 
-    def __init__(self, state_dir: str | Path, min_free_bytes: int = MIN_FREE_BYTES) -> None:
+    def __init__(self, state_dir: str | Path, min_free_bytes: int = MIN_FREE_BYTES,
+                 reserve_bytes: int = RESERVE_BYTES) -> None:
         self.state_dir = Path(state_dir)
         self.min_free_bytes = min_free_bytes
+        self.space_note = ""  # how min_free_bytes was reckoned (shown in messages)
+        self.reserve_bytes = reserve_bytes
         self.db_path = self.state_dir / DB_NAME
         self.frames_dir = self.state_dir / FRAMES_DIR
+        self.reserve_path = self.state_dir / RESERVE_NAME
         self._lock = threading.RLock()
         self._conn: sqlite3.Connection | None = None
 
@@ -217,6 +251,7 @@ class Store:
             conn.execute("PRAGMA foreign_keys=ON")
             self._conn = conn
             self._migrate()
+            self._keep_reserve()
         except sqlite3.Error as exc:
             conn.close()
             self._conn = None
@@ -281,7 +316,81 @@ class Store:
             with self._tx() as conn:
                 return fn(conn)
         except sqlite3.Error as exc:
-            raise StoreError(f"{self.db_path}: cannot record {what}: {exc}") from None
+            err = StoreError(f"{self.db_path}: cannot record {what}: {exc}")
+            err.disk_full = _is_full(exc)
+            raise err from None
+
+    def _write_end(self, what: str, fn: Any) -> Any:
+        """A record that ends a run: on a full disk, the reserve is given up for it."""
+        try:
+            return self._write(what, fn)
+        except StoreError as exc:
+            if not exc.disk_full or not self._release_reserve():
+                raise
+            log.warning("disk full: released the %.0f MiB reserve to record %s",
+                        self.reserve_bytes / 2**20, what)
+            return self._write(what, fn)
+
+    # ---- the reserve ------------------------------------------------------------------
+    def _keep_reserve(self) -> bool:
+        """Make sure the reserve file holds ``reserve_bytes`` of allocated blocks; False if
+        there is no room for it now."""
+        with self._lock:
+            try:
+                st = self.reserve_path.stat()
+                if st.st_size >= self.reserve_bytes and st.st_blocks * 512 >= self.reserve_bytes:
+                    return True
+            except FileNotFoundError:
+                pass
+            tmp = self.reserve_path.with_name(RESERVE_NAME + ".tmp")
+            try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                try:
+                    _allocate(fd, self.reserve_bytes)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+                os.replace(tmp, self.reserve_path)
+            except OSError as exc:
+                with contextlib.suppress(OSError):
+                    tmp.unlink()
+                log.warning("%s: cannot keep the %.0f MiB reserve for recording a run's end: "
+                            "%s", self.reserve_path, self.reserve_bytes / 2**20,
+                            exc.strerror or exc)
+                return False
+            return True
+
+    def _release_reserve(self) -> bool:
+        with self._lock:
+            try:
+                self.reserve_path.unlink()
+            except FileNotFoundError:
+                return False
+            return True
+
+    def free_bytes(self) -> int:
+        try:
+            st = os.statvfs(self.state_dir)
+        except OSError as exc:
+            raise StoreError(f"{self.state_dir}: cannot check free space: "
+                             f"{exc.strerror or exc}") from None
+        return st.f_bavail * st.f_frsize
+
+    def space_problem(self) -> str | None:
+        """Why a run would be refused for lack of space now (``None``: there is room).
+        Cheap (statvfs, stat); puts the reserve back once there is room for it."""
+        try:
+            free = self.free_bytes()
+        except StoreError as exc:
+            return str(exc)
+        if free < self.min_free_bytes:
+            note = f" ({self.space_note})" if self.space_note else ""
+            return (f"{self.state_dir}: disk nearly full: {free / 2**20:.1f} MiB free, a run "
+                    f"needs at least {self.min_free_bytes / 2**20:.0f} MiB{note}")
+        if not self._keep_reserve():
+            return (f"{self.state_dir}: disk nearly full: no room to keep the "
+                    f"{self.reserve_bytes / 2**20:.0f} MiB that record a run's end")
+        return None
 
     @contextlib.contextmanager
     def _reader(self) -> Iterator[sqlite3.Connection]:
@@ -305,15 +414,9 @@ class Store:
         database and a durable file in the frames directory. Raise ``StoreError`` naming
         what failed. (SQLite reuses free pages, so only the free-space check sees a disk
         that is about to fill.)"""
-        try:
-            st = os.statvfs(self.state_dir)
-        except OSError as exc:
-            raise StoreError(f"{self.state_dir}: cannot check free space: "
-                             f"{exc.strerror or exc}") from None
-        free = st.f_bavail * st.f_frsize
-        if free < self.min_free_bytes:
-            raise StoreError(f"{self.state_dir}: disk nearly full: {free / 2**20:.1f} MiB free, "
-                             f"a run needs at least {self.min_free_bytes / 2**20:.0f} MiB")
+        problem = self.space_problem()
+        if problem:
+            raise StoreError(problem)
         self._write("a write probe", lambda c: c.execute(
             "INSERT INTO meta(key, value) VALUES ('last_write_probe', ?) "
             "ON CONFLICT(key) DO UPDATE SET value = excluded.value", (utc_now(),)))
@@ -342,7 +445,7 @@ class Store:
                           (run_id, now, "error", f"marked interrupted at start-up: {reason}"))
             return ids
 
-        ids = self._write("interrupted runs", fn)
+        ids = self._write_end("interrupted runs", fn)
         for run_id in ids:
             log.warning("run %d was left running by a previous daemon: marked interrupted",
                         run_id)
@@ -369,17 +472,26 @@ class Store:
         procedure's full record). A run is finished once, and never after being
         interrupted."""
 
-        def fn(c: sqlite3.Connection) -> None:
-            cur = c.execute(
-                "UPDATE runs SET status = 'finished', ended_at = ?, verdict = ?, reason = ?, "
-                "result_json = ?, details_json = ? WHERE id = ? AND status = 'running'",
-                (utc_now(), verdict, reason, None if result is None else dumps(result),
-                 None if details is None else dumps(details), run_id))
-            if cur.rowcount != 1:
-                raise StoreError(f"{self.db_path}: run {run_id} is not running; "
-                                 "its outcome was not recorded")
+        def record(details: Any, reason: str | None) -> Any:
+            def fn(c: sqlite3.Connection) -> None:
+                cur = c.execute(
+                    "UPDATE runs SET status = 'finished', ended_at = ?, verdict = ?, reason = ?,"
+                    " result_json = ?, details_json = ? WHERE id = ? AND status = 'running'",
+                    (utc_now(), verdict, reason, None if result is None else dumps(result),
+                     None if details is None else dumps(details), run_id))
+                if cur.rowcount != 1:
+                    raise StoreError(f"{self.db_path}: run {run_id} is not running; "
+                                     "its outcome was not recorded")
+            return fn
 
-        self._write(f"the end of run {run_id}", fn)
+        try:
+            self._write_end(f"the end of run {run_id}", record(details, reason))
+        except StoreError as exc:
+            if not exc.disk_full or details is None:
+                raise
+            # even the reserve was not enough for the full record: keep verdict and reason
+            self._write(f"the end of run {run_id}", record(
+                None, f"{reason or verdict} (the run's details were not recorded: disk full)"))
 
     def add_sweep(self, run_id: int, kind: str, iteration: int | None, sweep: Any,
                   commanded: Any = None, readback: Any = None) -> int:
@@ -415,7 +527,9 @@ class Store:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 atomic_write_bytes(path, encode_png(image))
         except OSError as exc:
-            raise StoreError(f"{path}: cannot save a frame: {exc.strerror or exc}") from None
+            err = StoreError(f"{path}: cannot save a frame: {exc.strerror or exc}")
+            err.disk_full = _is_full(exc)
+            raise err from None
         h, w = image.shape[:2]
         self._write("a frame", lambda c: c.execute(
             "INSERT INTO frames(run_id, t, label, hash, width, height) VALUES (?, ?, ?, ?, ?, ?)",

@@ -13,8 +13,10 @@ that every run was recorded, the database is sound and no target left the soft l
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
@@ -42,7 +44,8 @@ def main(argv: list[str] | None = None) -> int:
         time.sleep(0.5)
         before = proc_usage(dp.pid)
         t1 = time.monotonic()
-        verdicts = soak(dp, n)
+        reasons: list[str] = []
+        verdicts = soak(dp, n, reasons)
         elapsed = time.monotonic() - t1
         dp.wait_state("idle", "fault")
         time.sleep(0.5)
@@ -63,6 +66,11 @@ def main(argv: list[str] | None = None) -> int:
     for v, k in sorted(verdicts.items(), key=lambda kv: -kv[1]):
         print(f"{v:<22}{k:>12}")
     print(f"{'faults injected':<22}{faults_hit:>12}")
+    if reasons:
+        print("why runs faulted (numbers and ports folded):")
+        for why, k in Counter(re.sub(r"\d+(\.\d+)?", "N", r)[:150] for r in reasons
+                              ).most_common():
+            print(f"{k:>5}  {why}")
     print(f"{'runs recorded':<22}{recorded:>12}  (started {started})")
     print(f"{'integrity_check':<22}{' '.join(integrity):>12}")
     print(f"{'soft-limit violations':<22}{len(violations):>12}")

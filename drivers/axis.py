@@ -215,8 +215,11 @@ class Axis(ABC):
         cancel event of ``cancel_on`` is set. The drivers' homing waits are this loop.
         """
         deadline = self.clock.now() + timeout_s
-        while not done():
-            if self.clock.now() > deadline:
+        while True:
+            now = self.clock.now()  # before the poll: a late answer is no timeout
+            if done():
+                return
+            if now > deadline:
                 if stop_on_timeout:
                     self.stop()
                 raise DeviceTimeoutError(timeout_message, device=self.name, port=self.port,
@@ -225,11 +228,16 @@ class Axis(ABC):
             self.clock.sleep(self.config.poll_interval_s)
 
     def wait_until_stopped(self, timeout_s: float, command: str = "move") -> AxisStatus:
-        """Poll status until not moving; stop and raise on a fault, limit or timeout."""
+        """Poll status until not moving; stop and raise on a fault, limit or timeout.
+
+        Each poll's time is taken before its requests are sent: a "still moving" answer
+        is then true of that time or later, so a slow link or a busy host can never turn
+        a move that finished in time into a timeout or a stall."""
         deadline = self.clock.now() + timeout_s
         last_pos = None
         still_since = self.clock.now()
         while True:
+            now = self.clock.now()
             st = self.status()
             if st.stalled or st.fault:
                 self.stop()
@@ -243,7 +251,6 @@ class Axis(ABC):
                                  device=self.name, port=self.port, command=command)
             if not st.moving:
                 return st
-            now = self.clock.now()
             pos = self.position()
             if last_pos is None or abs(pos - last_pos) > 1e-9:
                 still_since = now

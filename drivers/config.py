@@ -95,16 +95,38 @@ class CameraConfig(Strict):
 
 
 class FaultConfig(Strict):
-    """An injected fault of the simulated rig (see drivers.sim.server)."""
+    """An injected fault of the simulated rig (see drivers.sim.server).
+
+    A deterministic fault names the command it hits (``on``, with ``nth`` and optionally
+    ``following``): "the 3rd reply to a ``TE`` that follows a ``PA``". ``after_commands``
+    counts every command, status polls included, so where it lands depends on timing: it
+    suits random soak faults, not a test that expects one outcome.
+    """
 
     device: str  # controller name
     kind: Literal["no_reply", "truncated", "garbled", "bad_checksum", "slow_reply", "late_reply",
                   "stall", "limit_switch", "disconnect"]
+    on: str | None = Field(None, description=(
+        "the command hit, by kind: SMC100 mnemonic ('TE', 'PA'), Zaber command words "
+        "('move abs', 'get pos'), APT message id ('0x0453'). A wire fault hits the reply to "
+        "it; stall, limit_switch and disconnect fire once it has been received"))
+    following: str | None = Field(None, description=(
+        "with on: only a command that directly follows one of this kind on the same link"))
+    nth: int = Field(1, ge=1, description="with on: the first matching command hit is the nth")
     after_commands: int = Field(0, ge=0, description="let this many commands through first")
-    count: int = Field(1, ge=0, description="how many commands are hit; 0 = all after")
+    count: int = Field(1, ge=0, description=(
+        "how many commands are hit; 0 = all after (with on: every reply from the nth match on)"))
     probability: float = Field(1.0, ge=0, le=1)
     delay_s: float = Field(1.0, ge=0)
     axis: Role | None = None
+
+    @model_validator(mode="after")
+    def _one_trigger(self) -> FaultConfig:
+        if self.on is not None and self.after_commands:
+            raise ValueError("give either on (a command kind) or after_commands, not both")
+        if self.on is None and (self.following is not None or self.nth != 1):
+            raise ValueError("following and nth need on (the command kind to match)")
+        return self
 
 
 class SimWorldConfig(Strict):

@@ -40,6 +40,8 @@ from drivers.errors import (
 from drivers.transport import SerialTransport
 
 log = logging.getLogger(__name__)
+# a read is asked at most this often after lost or corrupt replies (two in a row pass)
+READ_ATTEMPTS = 3
 
 # ---- addresses ------------------------------------------------------------------------
 HOST = 0x01
@@ -813,7 +815,17 @@ class AptAxis(Axis):
                                  command=command)
 
     def _request(self, raw: bytes, reply_id: int, command: str) -> AptMessage:
+        """A read request, asked again (at most ``READ_ATTEMPTS`` times) after a lost or
+        corrupt reply: reads are idempotent, and the link keeps a late earlier answer from
+        passing for a later one."""
         self._require_connected(command)
+        for _ in range(READ_ATTEMPTS - 1):
+            try:
+                return self.link.request(raw, reply_id, command, channel=self.channel)
+            except (DeviceTimeoutError, ProtocolError) as exc:
+                if not self.link.transport.is_open:
+                    raise
+                log.warning("%s: %s; asking again", self.name, exc.detail)
         return self.link.request(raw, reply_id, command, channel=self.channel)
 
     # ---- life cycle --------------------------------------------------------------------

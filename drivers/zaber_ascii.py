@@ -39,6 +39,9 @@ from drivers.errors import (
 from drivers.transport import SerialTransport
 
 log = logging.getLogger(__name__)
+# commands safe to repeat are re-sent at most this often after a lost or corrupt reply
+# (two in a row still pass)
+RETRIES = 2
 
 DEFAULT_BAUDRATE = 115200
 MAX_MESSAGE_ID = 99
@@ -381,7 +384,10 @@ class ZaberChain:
 
     def broadcast(self, command: str, *, axis: int = 0,
                   quiet_s: float | None = None) -> list[Reply]:
-        """Send ``command`` to every device (device 0); collect replies until quiet."""
+        """Send ``command`` to every device (device 0); collect replies until quiet.
+
+        The first reply may take the whole reply timeout (a busy host or a slow link);
+        after it, ``quiet_s`` without another reply ends the collection."""
         what = f"/0 {axis} {command}".rstrip()
         quiet = self.transport.timeout_s if quiet_s is None else quiet_s
         replies: list[Reply] = []
@@ -390,8 +396,9 @@ class ZaberChain:
             self.transport.write(format_command(0, axis, command, mid, self.checksums),
                                  command=what)
             while True:
+                wait = quiet if replies else max(quiet, self.transport.timeout_s)
                 try:
-                    reply = self._read_reply(time.monotonic() + quiet, what)
+                    reply = self._read_reply(time.monotonic() + wait, what)
                 except DeviceTimeoutError:
                     break
                 if reply.kind == "@" and reply.message_id == mid:
@@ -467,7 +474,7 @@ class ZaberAxis(Axis):
         return reply
 
     def _get_int(self, setting: str, *, device_scope: bool = False) -> int:
-        reply = self._checked(f"get {setting}", device_scope=device_scope, retries=1)
+        reply = self._checked(f"get {setting}", device_scope=device_scope, retries=RETRIES)
         try:
             return int(reply.data.split()[0])
         except (ValueError, IndexError) as exc:
@@ -516,8 +523,8 @@ class ZaberAxis(Axis):
     # ---- Axis primitives ----------------------------------------------------------
     def identify(self) -> Identity:
         device_id = self._get_int("deviceid", device_scope=True)
-        serial = self._checked("get system.serial", device_scope=True, retries=1).data
-        version = self._checked("get version", device_scope=True, retries=1).data
+        serial = self._checked("get system.serial", device_scope=True, retries=RETRIES).data
+        version = self._checked("get version", device_scope=True, retries=RETRIES).data
         peripheral = self._get_int("peripheralid")
         model = DEVICE_IDS.get(device_id, f"Zaber device id {device_id}")
         stage = self.config.stage if peripheral == 0 else f"peripheral id {peripheral}"
@@ -542,7 +549,9 @@ class ZaberAxis(Axis):
             self._clear_warnings()
         steps = self.to_steps(target)
         text = f"move abs {steps}"
-        reply = self._cmd(text)
+        # an absolute move is idempotent: after a lost or corrupt reply it is sent again
+        # (with a new message id, so a late first reply cannot pass for the second)
+        reply = self._cmd(text, retries=RETRIES)
         if reply.ok:
             self._target = self.to_mm(steps)
             return
@@ -558,18 +567,18 @@ class ZaberAxis(Axis):
                           port=self.port, command=text)
 
     def stop(self) -> None:
-        self._checked("stop", retries=1)
+        self._checked("stop", retries=RETRIES)
 
     def position(self) -> float:
         return self.to_mm(self._get_int("pos"))
 
     def _clear_warnings(self) -> None:
-        reply = self._checked("warnings clear", retries=1)
+        reply = self._checked("warnings clear", retries=RETRIES)
         log.warning("%s: cleared latched warnings %s", self.name, reply.data)
         self._latched = frozenset()
 
     def status(self) -> AxisStatus:
-        reply = self._checked("warnings", retries=1)
+        reply = self._checked("warnings", retries=RETRIES)
         try:
             flags = parse_warnings(reply.data)
         except ProtocolError as exc:

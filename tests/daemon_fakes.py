@@ -9,6 +9,7 @@ Also used by ``run_fake_daemon`` in a subprocess (SIGTERM/SIGKILL tests).
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import sys
 import tempfile
@@ -152,16 +153,18 @@ def short_tmp() -> Path:
 
 
 def make_env(procs: dict[str, Any] | None = None, *, rig_factory: Any = None,
-             authoriser: Authoriser | None = None, **server_kw: Any) -> Iterator[Env]:
+             authoriser: Authoriser | None = None, config_path: Path | None = None,
+             **server_kw: Any) -> Iterator[Env]:
     tmp = short_tmp()
-    cfg = load_config(SIM_CONFIG)
+    cfg = load_config(config_path or SIM_CONFIG)
     store = Store(tmp / "state").open()
     gate = threading.Event()
     rig = FakeRig()
     procs = procs or {"align": make_procedure("aligned", gate=gate),
                       "check": make_procedure("within_tolerance", gate=gate)}
-    daemon = Daemon(cfg, store, rig_factory or (lambda: rig), procedures=procs,
-                    socket_path=str(tmp / "s.sock"), stop_timeout_s=5.0)
+    daemon = Daemon(cfg, store, rig_factory or (lambda _cfg: rig), procedures=procs,
+                    socket_path=str(tmp / "s.sock"), stop_timeout_s=5.0,
+                    config_path=config_path)
     server = ApiServer(tmp / "s.sock", daemon, authoriser or Authoriser(None), **server_kw)
     server.start()
     daemon.start()
@@ -195,17 +198,44 @@ def follow(client: Client, run_id: int) -> dict[str, Any]:
             return {**r, "events": events}
 
 
+def fill_disk(rig: Any, cfg: Any, *, progress: Any, abort: threading.Event,
+              recorder: Any, run_id: str) -> FakeResult:
+    """A run that records incompressible 64 KiB frames until the disk is full (the store
+    raises) or it is aborted."""
+    from alignd.store import StoreError
+
+    rng = np.random.default_rng(5)
+    k = 0
+    try:
+        while not abort.is_set():
+            recorder.frame(rng.integers(0, 256, (256, 256), dtype=np.uint8),
+                           f"measure-1-{k:03d}-0")
+            k += 1
+    except StoreError:
+        # the disk is full for every writer now (as when a log fills it): take the last
+        # bytes too, so that what the failed frame file gave back does not save the day
+        filler = recorder.store.state_dir.parent / "filler"
+        with open(filler, "ab", buffering=0) as f, contextlib.suppress(OSError):
+            while True:
+                f.write(b"\0" * 4096)
+        raise
+    return FakeResult("aborted", (0.0, 0.0), 5.0, 0, "aborted")
+
+
 def run_fake_daemon(argv: list[str], mode: str) -> int:
     """Entry for the subprocess tests: the real ``alignd`` main with a fake rig.
 
-    mode ``block``: runs block until aborted (SIGTERM/SIGKILL tests); ``quick``: finish.
+    mode ``block``: runs block until aborted (SIGTERM/SIGKILL tests); ``quick``: finish;
+    ``fill``: an align fills the disk, a check finishes.
     """
     from alignd.daemon import main
 
-    gate = None if mode == "quick" else threading.Event()
+    gate = None if mode in ("quick", "fill") else threading.Event()
     procs = {"align": make_procedure("aligned", gate=gate),
              "check": make_procedure("within_tolerance", gate=gate)}
-    return main(argv, rig_factory=FakeRig, procedures=procs)
+    if mode == "fill":
+        procs["align"] = fill_disk
+    return main(argv, rig_factory=lambda _cfg: FakeRig(), procedures=procs)
 
 
 if __name__ == "__main__":
@@ -229,16 +259,60 @@ print(json.dumps([req(*r) for r in json.loads(sys.argv[2])]))
 """
 
 
-def as_observer(sock: object, requests: list[tuple[str, str, str]]) -> list[list[object]]:
-    """Send ``requests`` to the daemon from a process running as ``nobody`` (uid 65534):
-    an observer, not in any operator group. Returns ``[[status, reply], ...]``."""
-    import json as _json
+def _system_python() -> str:
     import shutil as _shutil
+
+    return _shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
+
+
+def as_observer(sock: object, requests: list[tuple[str, str, str]],
+                groups: list[int] | None = None) -> list[list[object]]:
+    """Send ``requests`` to the daemon from a process running as ``nobody`` (uid 65534):
+    an observer, in no group but ``groups`` (its supplementary groups, which the group
+    database does not know about). Returns ``[[status, reply], ...]``."""
+    import json as _json
     import subprocess as _subprocess
 
-    python = _shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
-    out = _subprocess.run([python, "-c", OBSERVER_SCRIPT, str(sock), _json.dumps(requests)],
-                          user=65534, group=65534, extra_groups=[], capture_output=True,
-                          text=True, timeout=20, cwd="/")
+    out = _subprocess.run([_system_python(), "-c", OBSERVER_SCRIPT, str(sock),
+                           _json.dumps(requests)],
+                          user=65534, group=65534, extra_groups=groups or [],
+                          capture_output=True, text=True, timeout=20, cwd="/")
     assert out.returncode == 0, out.stderr
     return _json.loads(out.stdout)
+
+
+HOLDER_SCRIPT = r"""
+import socket, sys
+held = []
+for request in sys.argv[2:]:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.connect(sys.argv[1])
+    try:
+        s.sendall(request.encode())
+    except OSError:  # refused (503) and closed before we sent
+        pass
+    held.append(s)
+print(len(held), flush=True)
+sys.stdin.read()  # hold every connection until the test closes our stdin
+"""
+
+
+class Holder:
+    """A process running as ``nobody`` that opens a connection per request text (a partial
+    request: an idle connection; a long poll: a slow one) and holds them all until closed."""
+
+    def __init__(self, sock: object, requests: list[str]) -> None:
+        import subprocess as _subprocess
+
+        self.proc = _subprocess.Popen([_system_python(), "-c", HOLDER_SCRIPT, str(sock),
+                                       *requests], user=65534, group=65534, extra_groups=[],
+                                      stdin=_subprocess.PIPE, stdout=_subprocess.PIPE,
+                                      text=True, cwd="/")
+        assert self.proc.stdout is not None
+        opened = self.proc.stdout.readline().strip()
+        assert opened == str(len(requests)), opened
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()
+        self.proc.wait(timeout=20)

@@ -62,9 +62,8 @@ def write_config(tmp: Path, *, faults: Iterable[dict[str, Any]] = (),
                  **top: Any) -> tuple[Path, AligndConfig]:
     """The reference sim config with small sweeps, a fast clock, a target log and faults."""
     data = yaml.safe_load(SIM_YAML.read_text())
-    if reply_timeout_s is not None:
-        for c in data["controllers"]:
-            c["reply_timeout_s"] = reply_timeout_s
+    for c in data["controllers"]:  # far above a busy host's scheduling delays
+        c["reply_timeout_s"] = 1.0 if reply_timeout_s is None else reply_timeout_s
     data["procedure"].update(FAST_PROCEDURE if procedure is None else procedure)
     data["sim"].update(time_scale=time_scale, seed=seed, faults=list(faults),
                        target_log=str(tmp / "targets.jsonl"))
@@ -298,7 +297,6 @@ def main(argv: list[str]) -> int:
     from drivers.sim.direct import SceneCamera
 
     args = daemon_mod.build_parser().parse_args(argv)
-    cfg = load_config(args.config)
     real = os.environ.get("FAULTS_TOOLS") == "real"
     if os.environ.get("FAULTS_SIM_SOCKET"):
         _serve_snapshots(os.environ["FAULTS_SIM_SOCKET"])
@@ -318,7 +316,7 @@ def main(argv: list[str]) -> int:
         daemon_mod.ApiServer = functools.partial(  # type: ignore[misc]
             daemon_mod.ApiServer, request_timeout_s=float(os.environ["FAULTS_REQUEST_TIMEOUT_S"]))
 
-    def rig_factory() -> Any:
+    def rig_factory(cfg: AligndConfig) -> Any:
         rig = open_rig(cfg, seed=args.seed)
         sim = rig.on_close[0].__self__  # type: ignore[attr-defined]  # SimRig.stop's rig
         _SIM["rig"] = sim

@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 from daemon_fakes import Env, as_observer, follow, make_env, make_procedure, wait_until
 
+from alignd.admission import Limits
 from alignd.api import Authoriser, Peer, peer_credentials
 from alignd.client import ApiError
 from alignd.errors import DeviceTimeoutError, PortBusyError
@@ -123,7 +124,7 @@ def test_device_error_faults_the_daemon_until_reset() -> None:
 
 
 def test_rig_that_cannot_open_leaves_daemon_up_in_fault() -> None:
-    def factory() -> Any:
+    def factory(_cfg: Any) -> Any:
         raise PortBusyError("platform (zaber): /dev/ttyUSB0 is held by another process")
 
     for env in make_env(rig_factory=factory):
@@ -160,7 +161,10 @@ def test_authoriser_rules() -> None:
     assert auth.may_control(Peer(1, 0, 0))  # root always
     assert auth.may_control(Peer(1, 4242, 100, frozenset({100, gid})))
     assert not auth.may_control(Peer(1, 4242, 100, frozenset({100})))
-    assert Authoriser(None, allow_uids=frozenset()).may_control(Peer(1, 4242, 100))
+    # no operator group: nobody but root and the allowed uids (the daemon's own user)
+    assert not Authoriser(None, allow_uids=frozenset()).may_control(Peer(1, 4242, 100))
+    assert Authoriser(None, allow_uids=frozenset({4242})).may_control(Peer(1, 4242, 100))
+    assert Authoriser(None).may_control(Peer(1, os.getuid(), 100))  # the daemon's user
     assert not Authoriser("no-such-group-xyz", allow_uids=frozenset()).may_control(
         Peer(1, 4242, 100, frozenset({100})))
 
@@ -235,7 +239,7 @@ def test_bad_requests_get_errors_and_daemon_keeps_answering(env: Env) -> None:
 
 
 def test_stalled_and_excess_connections_are_cut() -> None:
-    for env in make_env(request_timeout_s=0.5, max_connections=2):
+    for env in make_env(request_timeout_s=0.5, limits=Limits(total=2, reserved=0)):
         stalled = []
         for _ in range(2):  # two clients that never finish their request
             s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -317,3 +321,94 @@ def test_fuzzed_requests_never_hurt_the_daemon(env: Env) -> None:
     assert b" 200 " in raw(env.sock, b"GET /status HTTP/1.1\r\n\r\n")
     # every connection's thread has finished: nothing leaks per request
     wait_until(lambda: threading.active_count() <= threads)
+
+
+# ---- access as a real other user (issue 9) -------------------------------------------------
+needs_root = pytest.mark.skipif(os.getuid() != 0, reason="drops privileges to uid 65534")
+
+
+@needs_root
+def test_without_operator_group_an_observer_may_read_but_not_control() -> None:
+    # operator_group: null (the shipped sim config) once meant "anyone may move the stages"
+    for env in make_env(authoriser=Authoriser(None)):
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        (s_code, st), (a_code, align), (x_code, _), (r_code, _) = as_observer(
+            env.sock, [("GET", "/status", ""), ("POST", "/align", "{}"),
+                       ("POST", "/abort", "{}"), ("POST", "/reset", "{}")])
+        assert s_code == 200 and st["state"] == "idle"
+        assert (a_code, x_code, r_code) == (403, 403, 403)
+        assert "uid 65534" in align["message"] and "no daemon.operator_group" in \
+            align["message"]
+        assert env.client.history() == []
+        run_id = env.client.start("check")["run_id"]  # root still may
+        assert env.client.abort()["aborted"] == run_id
+
+
+@needs_root
+def test_operator_rights_are_the_connecting_processes_own_groups() -> None:
+    """uid 65534 is in no group of the group database: only the groups its process holds
+    (as the kernel reports them, SO_PEERGROUPS) count, including past 256 of them."""
+    dialout = grp.getgrnam("dialout").gr_gid
+    assert "nobody" not in grp.getgrnam("dialout").gr_mem
+    many = list(range(60000, 60300))  # 300 groups: beyond what 1024 bytes can hold
+    for env in make_env(authoriser=Authoriser("dialout")):
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        for groups, expect in (([dialout], 200), ([], 403), ([*many, dialout], 200),
+                               (many, 403)):
+            [(code, reply)] = as_observer(env.sock, [("POST", "/abort", "{}")], groups)
+            assert code == expect, (len(groups), reply)
+            if expect == 200:
+                assert reply["aborted"] is None  # allowed; there was nothing to abort
+        [(code, reply)] = as_observer(env.sock, [("POST", "/check", "{}")], [dialout])
+        assert code == 202 and env.client.history(1)[0]["user"] == "nobody"
+        env.client.abort()
+
+
+def test_without_so_peergroups_only_the_primary_group_counts(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Fail closed: when the kernel cannot report the peer's groups, the group database
+    (which says what the user *could* hold, not what the process holds) is not asked."""
+    import errno
+
+    import alignd.api as api
+
+    class NoPeerGroups(socket.socket):
+        def getsockopt(self, level: int, opt: int, *args: int) -> Any:  # type: ignore[override]
+            if opt == api.SO_PEERGROUPS:
+                raise OSError(errno.ENOPROTOOPT, "Protocol not available")
+            return super().getsockopt(level, opt, *args)
+
+    operators = 4242
+    monkeypatch.setattr(os, "getgrouplist", lambda _user, gid: [gid, operators])
+    a, b = socket.socketpair()
+    with a, b, NoPeerGroups(fileno=os.dup(a.fileno())) as s:
+        peer = peer_credentials(s)
+    assert peer.groups == {os.getgid()} and not peer.groups_known
+    assert "supplementary groups" in caplog.text
+    auth = Authoriser("dialout", allow_uids=frozenset())
+    auth.operator_gid = operators
+    stranger = Peer(peer.pid, 4242, peer.gid, peer.groups, peer.groups_known)
+    assert not auth.may_control(stranger)
+    with pytest.raises(Exception, match="did not report the process's groups"):
+        auth.require_control(stranger, "start an alignment")
+
+
+def test_deeply_nested_body_is_a_400_not_a_crash(env: Env) -> None:
+    deep = b"[" * 30000 + b"]" * 30000
+    reply = raw(env.sock, _post("/align", deep))
+    assert reply.startswith(b"HTTP/1.1 400 ") and b"nested 30000 levels deep" in reply
+    reply = raw(env.sock, _post("/check", b'{"started_by": {"a": [[["user"]]]}}'))
+    assert reply.startswith(b"HTTP/1.1 400 ")  # shallow enough to parse, still not a word
+    reply = raw(env.sock, _post("/check", b'{"started_by": "user", "x": "[[[[[[[[[[[["}'))
+    assert reply.startswith(b"HTTP/1.1 202 ")  # brackets inside strings do not nest
+    env.client.abort()
+
+
+@needs_root
+def test_control_requests_are_authorised_before_the_body_is_read() -> None:
+    for env in make_env(authoriser=Authoriser("dialout")):
+        deep = "[" * 30000 + "]" * 30000
+        (d_code, d), (b_code, b) = as_observer(
+            env.sock, [("POST", "/align", deep), ("POST", "/check", "{" * 65000)])
+        assert (d_code, d["error"]) == (403, "forbidden")
+        assert (b_code, b["error"]) == (403, "forbidden")

@@ -3,6 +3,7 @@ against the emulator over real pseudo-terminals and TCP."""
 
 from __future__ import annotations
 
+import logging
 import struct
 import time
 from collections.abc import Callable
@@ -346,40 +347,56 @@ def test_unsolicited_move_completed_before_a_reply() -> None:
     assert ev.completed == 1 and ev.last is not None and ev.last.position == 343040
 
 
+def request_position(axis: AptAxis) -> None:
+    """One MOT_REQ_POSCOUNTER exchange on the link (the axis would ask once more)."""
+    axis.link.request(pack_short(Msg.MOT_REQ_POSCOUNTER, 1, dest=axis.link.dest),
+                      Msg.MOT_GET_POSCOUNTER, "MOT_REQ_POSCOUNTER", channel=1)
+
+
 def test_garbled_header_raises_protocol_error_then_link_resyncs() -> None:
     garbage = b"\x41\x7e\x13\x99\x07\x22" + b"\x00" * 8 + b"\x55\xaa"
     good = H("12 04 06 00 81 50 01 00") + struct.pack("<i", 34304)
     axis, _ = connected([(REQ_POS, garbage), (REQ_POS, good)])
     with pytest.raises(ProtocolError, match="bad APT header 41 7e") as exc:
-        axis.position()
+        request_position(axis)
     assert "fake://apt" in str(exc.value) and "MOT_REQ_POSCOUNTER" in str(exc.value)
     assert axis.position() == pytest.approx(1.0)  # nothing of the garbage was kept
+
+
+def test_position_read_is_asked_again_after_a_garbled_reply(
+        caplog: pytest.LogCaptureFixture) -> None:
+    garbage = b"\x41\x7e\x13\x99\x07\x22" + b"\x00" * 8 + b"\x55\xaa"
+    good = H("12 04 06 00 81 50 01 00") + struct.pack("<i", 34304)
+    axis, _ = connected([(REQ_POS, garbage), (REQ_POS, good)])
+    with caplog.at_level(logging.WARNING):
+        assert axis.position() == pytest.approx(1.0)
+    assert "bad APT header 41 7e" in caplog.text and "asking again" in caplog.text
 
 
 def test_known_id_with_wrong_length_is_rejected() -> None:
     bad = H("12 04 08 00 81 50") + bytes(8)  # GET_POSCOUNTER must carry 6 bytes
     axis, _ = connected([(REQ_POS, bad)])
     with pytest.raises(ProtocolError, match="must be 6 data bytes"):
-        axis.position()
+        request_position(axis)
 
 
 def test_reply_for_another_channel_is_rejected() -> None:
     other = H("12 04 06 00 81 50 02 00") + struct.pack("<i", 1)
     axis, _ = connected([(REQ_POS, other)])
     with pytest.raises(ProtocolError, match="channel 2"):
-        axis.position()
+        request_position(axis)
 
 
 def test_no_reply_times_out() -> None:
     axis, _ = connected([(REQ_POS, b"")], timeout_s=0.05)
     with pytest.raises(DeviceTimeoutError, match="no MOT_GET_POSCOUNTER reply"):
-        axis.position()
+        request_position(axis)
 
 
 def test_truncated_reply_is_a_protocol_error() -> None:
     axis, _ = connected([(REQ_POS, H("12 04 06 00 81 50 01 00"))], timeout_s=0.05)
     with pytest.raises(ProtocolError, match="truncated MOT_GET_POSCOUNTER"):
-        axis.position()
+        request_position(axis)
 
 
 def test_move_refused_before_homing_and_on_disabled_channel() -> None:
@@ -674,8 +691,8 @@ def test_emulator_bytes_parse_with_thorlabs_apt_protocol() -> None:
 server_mod = pytest.importorskip("drivers.sim.server")
 
 
-def served(mode: str, faults: list[FaultConfig] | None = None,
-           scale: float = 50.0) -> tuple[object, SimAxis, Callable[[], AptAxis]]:
+def served(mode: str, faults: list[FaultConfig] | None = None, scale: float = 50.0,
+           reply_timeout_s: float = 2.0) -> tuple[object, SimAxis, Callable[[], AptAxis]]:
     clock = ScaledClock(scale)
     ax = SimAxis("translator", physics_for(axis_config()), clock, np.random.default_rng(1),
                  start=12.0)
@@ -684,7 +701,7 @@ def served(mode: str, faults: list[FaultConfig] | None = None,
 
     def make() -> AptAxis:
         ctl = ControllerConfig(name="translator", protocol="apt", port=srv.url,
-                               reply_timeout_s=0.5, axes=[axis_config()])
+                               reply_timeout_s=reply_timeout_s, axes=[axis_config()])
         return make_axes(ctl, time_scale=scale)[0]
 
     return srv, ax, make
@@ -716,9 +733,9 @@ def test_unsolicited_updates_interleave_with_replies_over_port(mode: str) -> Non
 
 
 def test_garbled_reply_over_port_then_resync() -> None:
-    # let connect through (HW_GET_INFO, enable state, velocity, status), garble one reply
+    # connect asks HW_REQ_INFO once; the reply to the second one (identify) is garbled
     srv, _, make = served("tcp", [FaultConfig(device="translator", kind="garbled",
-                                              after_commands=4, count=1)])
+                                              on="0x0005", nth=2)])
     with srv, make() as axis:
         # (seeded: this garbling hits the header; APT has no checksum to catch data bytes)
         with pytest.raises(ProtocolError, match="bad APT header"):
@@ -727,9 +744,18 @@ def test_garbled_reply_over_port_then_resync() -> None:
         assert axis.position() == pytest.approx(0.0)
 
 
-def test_no_reply_over_port_times_out_and_recovers() -> None:
+def test_no_reply_over_port_is_asked_again(caplog: pytest.LogCaptureFixture) -> None:
     srv, _, make = served("pty", [FaultConfig(device="translator", kind="no_reply",
-                                              after_commands=4, count=1)])
+                                              on="0x0411")])  # MOT_REQ_POSCOUNTER
+    with srv, make() as axis, caplog.at_level(logging.WARNING):
+        assert axis.position() == pytest.approx(0.0)  # a read is idempotent: asked again
+        assert srv.faults.faults[0].hits == 1
+        assert "no MOT_GET_POSCOUNTER reply within 2 s; asking again" in caplog.text
+
+
+def test_no_reply_to_every_attempt_times_out_and_recovers() -> None:
+    srv, _, make = served("pty", [FaultConfig(device="translator", kind="no_reply",
+                                              on="0x0411", count=3)])
     with srv, make() as axis:
         with pytest.raises(DeviceTimeoutError, match="MOT_GET_POSCOUNTER"):
             axis.position()
@@ -738,20 +764,26 @@ def test_no_reply_over_port_times_out_and_recovers() -> None:
 
 def test_late_reply_is_not_taken_for_the_next_one() -> None:
     srv, _, make = served("tcp", [FaultConfig(device="translator", kind="slow_reply",
-                                              after_commands=4, count=1, delay_s=0.8)])
+                                              on="0x0411", delay_s=3.5)],
+                          reply_timeout_s=1.0)
     with srv, make() as axis:
-        with pytest.raises(DeviceTimeoutError, match="MOT_GET_POSCOUNTER"):
-            axis.position()  # the reply (0 counts) is on its way, late
+        # the reply (0 counts) is on its way, late; asking again first syncs the link, and
+        # the syncs' answers queue behind the late reply: nothing to trust in time
+        with pytest.raises(DeviceTimeoutError, match="MOT_REQ_POSCOUNTER"):
+            axis.position()
         axis.link.send(pack_data(Msg.MOT_SET_POSCOUNTER, pack_move(1, 34304)),
                        "MOT_SET_POSCOUNTER")
-        time.sleep(0.5)  # the late reply has arrived by now
+        deadline = time.monotonic() + 30  # an event, not a guess: the late reply is out
+        while srv.pending_replies() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not srv.pending_replies()
         assert axis.position() == pytest.approx(1.0)
 
 
 def test_disconnect_mid_homing_ends_in_transport_error() -> None:
-    # connect sends 7 commands; the port vanishes once the stage moves after that
+    # the port vanishes as soon as the controller has taken MOT_MOVE_HOME
     srv, _, make = served("tcp", [FaultConfig(device="translator", kind="disconnect",
-                                                after_commands=7)], scale=5.0)
+                                                on="0x0443")], scale=5.0)
     with srv, make() as axis:
         t0 = time.monotonic()
         with pytest.raises(TransportError):

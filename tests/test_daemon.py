@@ -3,6 +3,7 @@ sd_notify, CLI output and exit codes, atomic reports, and the systemd units."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -10,6 +11,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -37,6 +39,10 @@ from alignd.store import Store
 
 FAKES = Path(__file__).with_name("daemon_fakes.py")
 REPO = Path(__file__).resolve().parents[1]
+
+
+def fake_rig(_cfg: object) -> FakeRig:
+    return FakeRig()
 
 
 @pytest.fixture
@@ -83,7 +89,8 @@ def test_bad_config_exits_2_naming_the_key(tmp: Path, capsys: pytest.CaptureFixt
 def test_unwritable_state_dir_exits_3(tmp: Path, capsys: pytest.CaptureFixture) -> None:
     (tmp / "file").write_text("x")
     rc = daemon_mod.main(["--config", str(SIM_CONFIG), "--state-dir", str(tmp / "file" / "st"),
-                          "--socket", str(tmp / "s")], rig_factory=FakeRig, procedures={})
+                          "--socket", str(tmp / "s")], rig_factory=fake_rig,
+                          procedures={})
     assert rc == 3
     assert "cannot use the state directory" in capsys.readouterr().err
 
@@ -103,19 +110,33 @@ def test_resolution_order_for_socket_and_state_dir(monkeypatch: pytest.MonkeyPat
 
 
 # ---- signals and sd_notify (subprocess) --------------------------------------------------------
-def _recv_all(sock: socket.socket) -> list[str]:
-    msgs = []
-    while True:
-        try:
-            msgs.append(sock.recv(4096).decode())
-        except BlockingIOError:
-            return msgs
+class _NotifyReader:
+    """The service manager's side of ``$NOTIFY_SOCKET``, read continuously (as systemd
+    does): its queue holds only ``net.unix.max_dgram_qlen`` (10) messages."""
+
+    def __init__(self, path: Path) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.1)
+        self.msgs: list[str] = []
+        self._stop = False
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        while not self._stop:
+            with contextlib.suppress(TimeoutError):
+                self.msgs.append(self.sock.recv(4096).decode())
+
+    def close(self) -> str:
+        self._stop = True
+        self._thread.join(5)
+        self.sock.close()
+        return "\n".join(self.msgs)
 
 
 def test_sigterm_mid_run_aborts_records_and_exits_in_time(tmp: Path) -> None:
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(tmp / "notify"))
-    notify.setblocking(False)
+    notify = _NotifyReader(tmp / "notify")
     proc = spawn(tmp, "block", env={"NOTIFY_SOCKET": str(tmp / "notify"),
                                     "WATCHDOG_USEC": "200000"})
     client = Client(tmp / "s.sock")
@@ -128,12 +149,11 @@ def test_sigterm_mid_run_aborts_records_and_exits_in_time(tmp: Path) -> None:
         proc.send_signal(signal.SIGTERM)
         rc = proc.wait(timeout=10)
         elapsed = time.monotonic() - t0
-        msgs = "\n".join(_recv_all(notify))
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-        notify.close()
+        msgs = notify.close()
     err = proc.stderr.read()
     assert rc == 0, err
     assert elapsed < 5.0  # within --stop-timeout
@@ -158,11 +178,11 @@ def test_sigkill_mid_run_then_restart_marks_it_interrupted(tmp: Path,
         wait_until(lambda: client.status()["progress"] is not None)
         # a second daemon on the same state directory or socket is refused, harmlessly
         assert daemon_mod.main(["--config", str(SIM_CONFIG), "--socket", str(tmp / "t.sock"),
-                                "--state-dir", str(tmp / "state")], rig_factory=FakeRig,
+                                "--state-dir", str(tmp / "state")], rig_factory=fake_rig,
                                procedures={}) == 3
         assert "another alignd is using this state directory" in capsys.readouterr().err
         assert daemon_mod.main(["--config", str(SIM_CONFIG), "--socket", str(tmp / "s.sock"),
-                                "--state-dir", str(tmp / "other")], rig_factory=FakeRig,
+                                "--state-dir", str(tmp / "other")], rig_factory=fake_rig,
                                procedures={}) == 3
         assert "already listening" in capsys.readouterr().err
         assert client.status()["state"] == "aligning"  # the first daemon is unaffected
@@ -205,6 +225,18 @@ def test_notifier_protocol(tmp: Path) -> None:
     other = Notifier({"NOTIFY_SOCKET": "@x", "WATCHDOG_USEC": "4000000", "WATCHDOG_PID": "1"})
     assert other.watchdog_s is None  # the watchdog is meant for another process
     assert not Notifier({}).send("READY=1")  # outside systemd: a no-op
+    # a receiver that does not read (its queue holds 10): messages are dropped, the daemon
+    # is never blocked (it was: the worker hung in sendall and SIGTERM could not stop it)
+    deaf = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    deaf.bind(str(tmp / "deaf"))
+    sent: list[bool] = []
+    t = threading.Thread(target=lambda: sent.extend(
+        Notifier({"NOTIFY_SOCKET": str(tmp / "deaf")}).send("WATCHDOG=1") for _ in range(30)),
+        daemon=True)
+    t.start()
+    t.join(10)
+    deaf.close()
+    assert not t.is_alive() and sent[0] and not sent[-1]
 
 
 def test_status_line_names_the_progress() -> None:
@@ -314,6 +346,65 @@ def test_cli_report_writes_png_and_json(capsys: pytest.CaptureFixture, tmp: Path
             f"run-{run_id}.json", f"run-{run_id}.png"]
 
 
+def _can_mount() -> bool:
+    return subprocess.run(["unshare", "-m", "true"], capture_output=True).returncode == 0
+
+
+def _alignctl_proc(*args: str, stdout: int | None = None, read_only: Path | None = None
+                   ) -> subprocess.CompletedProcess[str]:
+    """alignctl in its own process, onto a given stdout; with ``read_only``, in a mount
+    namespace where that folder is a read-only bind mount (unwritable even for root)."""
+    cmd = [str(Path(sys.executable).with_name("alignctl")), *args]
+    if read_only is not None:
+        cmd = ["unshare", "-m", "sh", "-c", 'mount --bind "$0" "$0" && mount -o '
+               'remount,bind,ro "$0" && exec "$@"', str(read_only), *cmd]
+    return subprocess.run(cmd, cwd="/", stdout=stdout if stdout is not None else
+                          subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=60)
+
+
+def test_report_out_onto_a_file_or_an_unwritable_folder_is_a_clear_error(
+        capsys: pytest.CaptureFixture, tmp: Path) -> None:
+    procs = {"align": make_procedure("aligned"), "check": make_procedure("within_tolerance")}
+    for env in make_env(procs):
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        run_id = str(env.client.start("check")["run_id"])
+        follow(env.client, int(run_id))
+        (tmp / "afile").write_text("keep me\n")
+        assert ctl(env.sock, "report", run_id, "--out", str(tmp / "afile")) == 2
+        err = capsys.readouterr().err
+        assert f"--out {tmp / 'afile'} is a file, not a folder" in err
+        assert (tmp / "afile").read_text() == "keep me\n"
+        assert ctl(env.sock, "report", run_id, "--out", str(tmp / "afile" / "sub")) == 2
+        assert "cannot create the folder" in capsys.readouterr().err  # "Not a directory"
+        if not _can_mount():
+            pytest.skip("an unwritable folder needs a read-only bind mount (CAP_SYS_ADMIN)")
+        locked = tmp / "locked"  # read-only for everyone, root included: a read-only mount
+        locked.mkdir()
+        for out, says in ((locked, "cannot write into --out"),
+                          (locked / "new", "cannot create the folder")):
+            r = _alignctl_proc("--socket", env.sock, "report", run_id, "--out", str(out),
+                               read_only=locked)
+            assert r.returncode == 2, r.stderr
+            assert says in r.stderr and "Read-only file system" in r.stderr
+            assert "Traceback" not in r.stderr
+        assert list(locked.iterdir()) == []
+
+
+def test_output_into_a_closed_pipe_ends_quietly() -> None:
+    """``alignctl status | head -1``: the reader leaves early; no BrokenPipe traceback."""
+    for env in make_env():
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        for cmd in (["status"], ["history", "--json"], ["status", "--json"]):
+            r_fd, w_fd = os.pipe()
+            os.close(r_fd)  # the reader is gone before anything is written
+            try:
+                r = _alignctl_proc("--socket", env.sock, *cmd, stdout=w_fd)
+            finally:
+                os.close(w_fd)
+            assert r.returncode == 141, r.stderr
+            assert r.stderr == ""
+
+
 _REPORT_WRITER = r"""
 import sys
 from pathlib import Path
@@ -415,3 +506,134 @@ def test_udev_rule_lines_are_well_formed() -> None:
         assert all(("==" in kv) or ("+=" in kv) or ("=" in kv) for kv in keys), ln
         assert 'SYMLINK+="alignd/' in ln and ("GROUP=\"dialout\"" in ln or
                                                "GROUP=\"video\"" in ln)
+
+
+# ---- reset re-reads the config (issue 9) ----------------------------------------------------
+def test_reset_rereads_the_config_and_a_bad_file_keeps_the_old_one(
+        capsys: pytest.CaptureFixture, tmp: Path) -> None:
+    import yaml
+
+    path = tmp / "rig.yaml"
+    data = yaml.safe_load(SIM_CONFIG.read_text())
+    path.write_text(yaml.safe_dump(data))
+    opened: list[object] = []
+
+    def factory(cfg: object) -> FakeRig:
+        opened.append(cfg)
+        return FakeRig()
+
+    for env in make_env(config_path=path, rig_factory=factory):
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        first = env.client.status()
+        # the operator fixes the config (a tolerance, the name) and resets
+        data["name"], data["procedure"]["tolerance_um"] = "rig-B", 7.5
+        path.write_text(yaml.safe_dump(data))
+        assert ctl(env.sock, "reset") == 0
+        assert "reloaded" in capsys.readouterr().out
+        wait_until(lambda env=env: env.daemon.state == "idle")
+        st = env.client.status()
+        assert st["name"] == "rig-B" and st["config_hash"] != first["config_hash"]
+        assert len(opened) == 2 and opened[-1].procedure.tolerance_um == 7.5  # type: ignore
+        run_id = env.client.start("check")["run_id"]
+        env.gate.set()
+        run = env.client.run(follow(env.client, run_id)["run_id"])
+        assert run["config_hash"] == st["config_hash"] and run["config"]["name"] == "rig-B"
+        # a bad file: the reset is refused, naming file and key; the config stays
+        data["procedure"]["tolerance_uum"] = 5.0
+        path.write_text(yaml.safe_dump(data))
+        assert ctl(env.sock, "reset") == 2
+        err = capsys.readouterr().err
+        assert "reset refused" in err and str(path) in err
+        assert "procedure.tolerance_uum" in err and "keeps the config it has" in err
+        assert "Traceback" not in err
+        st2 = env.client.status()
+        assert st2["state"] == "idle" and st2["config_hash"] == st["config_hash"]
+        assert len(opened) == 2  # the rig was not touched
+
+
+# ---- a full disk (issue 9): a real small file system, in a mount namespace --------------------
+def _spawn_on_small_disk(tmp: Path, config: Path, size: str) -> subprocess.Popen[str]:
+    """The fake-rig daemon with its state directory on a ``size`` tmpfs of its own."""
+    disk = tmp / "disk"
+    disk.mkdir()
+    return subprocess.Popen(
+        ["unshare", "-m", "sh", "-c", 'mount -t tmpfs -o size="$0" tmpfs "$1" && shift && '
+         'exec "$@"', size, str(disk), sys.executable, str(FAKES), "fill", "--config",
+         str(config), "--socket", str(tmp / "s.sock"), "--state-dir", str(disk / "state"),
+         "--stop-timeout", "5"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _small_camera_config(tmp: Path) -> Path:
+    import yaml
+
+    data = yaml.safe_load(SIM_CONFIG.read_text())
+    for cam in data["cameras"]:
+        cam.update(width=64, height=48)  # a run needs ~0.6 MiB of frames + 4 MiB of records
+    path = tmp / "small.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+needs_mount = pytest.mark.skipif(not _can_mount(), reason="needs a mount namespace "
+                                 "(CAP_SYS_ADMIN) for a small real file system")
+
+
+@needs_mount
+def test_disk_full_mid_run_still_records_the_runs_end_and_runs_resume_with_space(
+        tmp: Path, capsys: pytest.CaptureFixture) -> None:
+    proc = _spawn_on_small_disk(tmp, _small_camera_config(tmp), "12m")
+    client = Client(tmp / "s.sock", timeout_s=10.0)
+    try:
+        wait_ready(client, proc)
+        assert client.status()["runs_refused"] is None
+        run_id = client.start("align")["run_id"]  # records frames until the disk is full
+        out = follow(client, run_id)
+        assert out["status"] == "finished" and out["verdict"] == "fault"
+        run = client.run(run_id)
+        assert run["status"] == "finished" and run["verdict"] == "fault"
+        assert "No space left on device" in run["reason"] or "disk is full" in run["reason"]
+        assert len(run["frames"]) > 50  # it did fill the disk
+        # a run cut off mid-motion faults the daemon (as any fault does: reset to go on);
+        # status also says that runs are refused for lack of space, and why
+        st = client.status()
+        assert st["state"] == "fault" and "disk nearly full" in st["runs_refused"]
+        assert ctl(str(tmp / "s.sock"), "reset") == 0
+        wait_until(lambda: client.status()["state"] == "idle")
+        assert ctl(str(tmp / "s.sock"), "check") == 3
+        assert "disk nearly full" in capsys.readouterr().err
+        assert ctl(str(tmp / "s.sock"), "status") == 0
+        assert "state: idle; runs refused: " in capsys.readouterr().out
+        # space comes back (the filler and the frames are removed): runs are accepted again
+        disk = Path(f"/proc/{proc.pid}/root{tmp}/disk")  # the daemon's mounts
+        (disk / "filler").unlink()
+        for sub in (disk / "state" / "frames").iterdir():
+            if sub.is_dir():
+                shutil.rmtree(sub)
+        wait_until(lambda: client.status()["runs_refused"] is None)
+        check = follow(client, client.start("check")["run_id"])
+        assert check["verdict"] == "within_tolerance"
+        assert [r["status"] for r in client.history()] == ["finished", "finished"]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert "released the 4 MiB reserve to record the end of run 1" in err
+
+
+@needs_mount
+def test_too_little_space_at_start_answers_status_with_the_reason(
+        tmp: Path, capsys: pytest.CaptureFixture) -> None:
+    proc = _spawn_on_small_disk(tmp, SIM_CONFIG, "12m")  # a run may need 173 MiB of frames
+    client = Client(tmp / "s.sock", timeout_s=10.0)
+    try:
+        wait_ready(client, proc)  # it started (it used to exit with 3)
+        refused = client.status()["runs_refused"]
+        assert "disk nearly full" in refused and "a run needs at least 173 MiB" in refused
+        assert "192 frames of 1280x720x1 bytes (keep_frames all)" in refused
+        assert ctl(str(tmp / "s.sock"), "align") == 3
+        assert "a run needs at least 173 MiB" in capsys.readouterr().err
+        assert client.history() == []
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err

@@ -47,7 +47,7 @@ def wait_moving(dp: DaemonProc, timeout_s: float = 20.0) -> str:
         if moving:
             return moving[0]
         time.sleep(0.01)
-    raise AssertionError("no axis started moving")
+    raise AssertionError(f"no axis started moving; daemon status: {dp.client.status()}")
 
 
 # ---- 15. abort and SIGTERM mid-move; 16. SIGKILL mid-run, then restart ---------------------------
@@ -153,11 +153,13 @@ def test_kill_during_commit_or_report_write_leaves_everything_consistent(seed: i
                     assert store.frame_path(f["hash"]).stat().st_size > 0
         finally:
             store.close()
-        reports = sorted(p.name for p in (tmp / "rep").iterdir() if not p.name.startswith("."))
-        if reports:
-            rec = json.loads((tmp / "rep" / "run-1.json").read_text())  # wholly old or new
+        png, js = tmp / "rep" / "run-1.png", tmp / "rep" / "run-1.json"
+        if png.exists():  # wholly old or new
+            assert png.read_bytes()[-8:] == b"IEND\xaeB`\x82"
+        if js.exists():  # written last: a report with its JSON is complete
+            rec = json.loads(js.read_text())
             assert rec["verdict"] in ("within_tolerance", "out_of_tolerance")
-            assert (tmp / "rep" / "run-1.png").read_bytes()[-8:] == b"IEND\xaeB`\x82"
+            assert png.exists()
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -348,19 +350,25 @@ def proc_usage(pid: int) -> dict[str, int]:
             "fds": len(os.listdir(f"/proc/{pid}/fd"))}
 
 
-def soak(dp: DaemonProc, n: int) -> dict[str, int]:
-    """``n`` checks back to back; a fault is reset and the next check goes on."""
+def soak(dp: DaemonProc, n: int, reasons: list[str] | None = None) -> dict[str, int]:
+    """``n`` checks back to back; a fault is reset and the next check goes on. The reasons
+    of faulted runs and failed resets are appended to ``reasons`` when given."""
     verdicts: dict[str, int] = {}
     for _ in range(n):
         st = dp.wait_state("idle", "fault")
         if st["state"] == "fault":
             dp.client.reset()
             dp.wait_state("idle", "fault")
-            if dp.client.status()["state"] != "idle":
+            st = dp.client.status()
+            if st["state"] != "idle":
                 verdicts["reset_failed"] = verdicts.get("reset_failed", 0) + 1
+                if reasons is not None:
+                    reasons.append(f"reset: {st.get('fault')}")
                 continue
         run = dp.run_and_wait("check", timeout_s=60)
         verdicts[run["verdict"]] = verdicts.get(run["verdict"], 0) + 1
+        if reasons is not None and run["verdict"] == "fault":
+            reasons.append(str(run["reason"]))
     return verdicts
 
 

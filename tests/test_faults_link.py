@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -30,10 +29,11 @@ from drivers.sim.server import EmulatorServer, FaultInjector
 CFG = load_config(SIM_YAML)
 CONTROLLERS = {c.name: c for c in CFG.controllers}
 ROLE = {"turntable": "turntable", "translator": "translator", "platform": "x"}
+MOVE_COMMAND = {"smc100": "PA", "apt": "0x0453", "zaber": "move abs"}  # absolute moves
 
 
 @contextlib.contextmanager
-def served(name: str, *, reply_timeout_s: float = 0.1, time_scale: float = 50.0,
+def served(name: str, *, reply_timeout_s: float = 1.0, time_scale: float = 50.0,
            **axis_update: Any) -> Iterator[tuple[Axis, SimAxis, EmulatorServer]]:
     """One controller of the reference rig on its emulator, its driver connected and homed."""
     ctl = CONTROLLERS[name]
@@ -79,13 +79,23 @@ def test_corrupt_reply_is_never_a_value_and_the_link_resyncs(name: str, kind: st
             assert axis.position() == here  # the link is in step again
 
 
-def test_garbled_reply_mid_sweep_with_the_real_vision_does_not_end_the_run() -> None:
-    """Scenario 2 at the daemon level, on rendered frames tracked by ``alignd.vision``."""
-    faults = [{"device": "turntable", "kind": "garbled", "after_commands": 30}]
+@pytest.mark.parametrize(("on", "following", "nth"), [
+    ("TE", "PA", 3),  # the acknowledgement of a sweep move: resolved by asking TS/TH/TP
+    ("TP", None, 12),  # a position read: resent after a resynchronisation
+])
+def test_garbled_reply_mid_sweep_with_the_real_vision_does_not_end_the_run(
+        on: str, following: str | None, nth: int) -> None:
+    """Scenario 2 at the daemon level, on rendered frames tracked by ``alignd.vision``.
+    The fault names the exchange it hits, so the outcome never depends on how many status
+    polls ran before it (issue 15)."""
+    faults = [{"device": "turntable", "kind": "garbled", "on": on, "following": following,
+               "nth": nth}]
     with sim_daemon(faults=faults, env={"FAULTS_TOOLS": "real"}) as dp:
         run = dp.run_and_wait("check")
         assert_end_state(dp, run, verdicts=["within_tolerance", "out_of_tolerance"])
         assert dp.stderr().count("fault garbled on turntable") == 1
+        if on == "TE":
+            assert "the move was accepted" in dp.stderr()
         for sw in run["sweeps"]:  # every recorded read-back is a real position
             for c, r in zip(sw["commanded"], sw["readback"], strict=True):
                 assert abs(c - r) <= 0.001
@@ -98,24 +108,25 @@ def test_late_reply_is_not_taken_for_the_current_answer(name: str) -> None:
         lim = axis.config.soft_limits
         old = axis.move_to(lim.min + 1.0)
         new = lim.min + 3.0
-        fi = inject(srv, "late_reply", delay_s=0.5)
+        fi = inject(srv, "late_reply", delay_s=2.5)
+        made = fi.on_reply
 
-        def teleport() -> None:  # once the late reply is made, the stage is elsewhere
-            deadline = time.monotonic() + 5
-            while fi.faults[0].hits == 0 and time.monotonic() < deadline:
-                time.sleep(0.001)
-            with srv.lock:
-                sim._freeze(sim.motor_position() + (new - old))
+        def teleport(reply: bytes, emulator: Any) -> tuple[bytes, float]:
+            """Once the late reply is made (in the server's thread, before it reads the
+            next command), the stage is elsewhere: no race with the driver's retry."""
+            out = made(reply, emulator)
+            if fi.faults[0].hits == 1 and sim.motor_position() == pytest.approx(old, abs=1e-3):
+                with srv.lock:
+                    sim._freeze(sim.motor_position() + (new - old))
+            return out
 
-        t = threading.Thread(target=teleport)
-        t.start()
+        fi.on_reply = teleport  # type: ignore[method-assign]
         answers = []
         for _ in range(8):
             try:
                 answers.append(axis.position())
             except (DeviceTimeoutError, ProtocolError):
                 continue
-        t.join()
         assert answers, "no answer after the late reply"
         assert all(a == pytest.approx(new, abs=1e-3) for a in answers), (old, new, answers)
 
@@ -127,7 +138,7 @@ def test_disconnect_mid_move_leaves_position_unknown(name: str) -> None:
         lim = axis.config.soft_limits
         axis.move_to(lim.min + 0.5)
         assert axis.position_known
-        inject(srv, "disconnect", after_commands=srv.emulator.commands_seen)
+        inject(srv, "disconnect", on=MOVE_COMMAND[srv.emulator.protocol])
         with pytest.raises(TransportError) as info:
             axis.move_to(lim.min + 0.5 + 0.5 * (lim.max - lim.min))
         assert info.value.device and info.value.port == srv.url
@@ -140,7 +151,7 @@ def test_disconnect_mid_move_leaves_position_unknown(name: str) -> None:
 
 
 def test_daemon_disconnect_mid_run_faults_safely() -> None:
-    faults = [{"device": "platform", "kind": "disconnect", "after_commands": 40}]
+    faults = [{"device": "platform", "kind": "disconnect", "on": "move abs", "nth": 1}]
     with sim_daemon(faults=faults) as dp:
         run = dp.run_and_wait("align")
         assert_end_state(dp, run, verdicts=["fault"], reason_has=["platform", "socket://"],
@@ -157,8 +168,10 @@ def test_daemon_disconnect_mid_run_faults_safely() -> None:
 
 # ---- 1. no reply ----------------------------------------------------------------------------
 def test_no_reply_mid_run_is_bounded_stops_and_names_device_port_command() -> None:
-    faults = [{"device": "turntable", "kind": "no_reply", "after_commands": 25, "count": 0}]
-    with sim_daemon(faults=faults, reply_timeout_s=0.2) as dp:
+    # mute from the TE acknowledging the 2nd move on: every later reply is lost
+    faults = [{"device": "turntable", "kind": "no_reply", "on": "TE", "following": "PA",
+               "nth": 2, "count": 0}]
+    with sim_daemon(faults=faults, reply_timeout_s=0.5) as dp:
         t0 = time.monotonic()
         run = dp.run_and_wait("check")
         elapsed = time.monotonic() - t0

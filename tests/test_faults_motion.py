@@ -33,7 +33,7 @@ NAMES = ["turntable", "translator", "platform"]
 # ---- 6. hardware limit switch ------------------------------------------------------------------
 def test_limit_switch_mid_run_stops_records_and_never_retries() -> None:
     faults = [{"device": "platform", "kind": "limit_switch", "axis": "x",
-               "after_commands": 120}]
+               "on": "move abs", "nth": 4}]
     with sim_daemon(faults=faults) as dp:
         run = dp.run_and_wait("align")
         assert_end_state(dp, run, verdicts=["fault"],
@@ -50,7 +50,7 @@ def test_limit_switch_mid_run_stops_records_and_never_retries() -> None:
 def test_stall_mid_sweep_stops_and_faults_and_a_timer_check_is_then_skipped(
         capsys: pytest.CaptureFixture[str]) -> None:
     """Scenario 9 (stall), and 21 (a scheduled check while the daemon is faulted)."""
-    faults = [{"device": "turntable", "kind": "stall", "after_commands": 30}]
+    faults = [{"device": "turntable", "kind": "stall", "on": "PA", "nth": 3}]
     with sim_daemon(faults=faults) as dp:
         run = dp.run_and_wait("check")
         assert_end_state(dp, run, verdicts=["fault"], reason_has=["device turntable"])

@@ -29,7 +29,7 @@ class LineEcho(Emulator):
         out = b""
         while b"\n" in self.buf:
             line, self.buf = self.buf.split(b"\n", 1)
-            self.commands_seen += 1
+            self.note_command(line.decode(errors="replace"))
             if line == b"POS?":
                 out += b"%.3f\n" % self.axes[1].encoder_position()
             elif line.startswith(b"MOVE "):
@@ -73,15 +73,40 @@ def test_bytes_both_ways(mode: str) -> None:
 ])
 def test_wire_faults_hit_only_the_chosen_replies(kind: str, check) -> None:
     emu, _ = make_emulator()
-    fault = FaultConfig(device="dev", kind=kind, after_commands=1, count=1)
+    fault = FaultConfig(device="dev", kind=kind, on="abcdefgh", nth=2)
     with EmulatorServer(emu, "tcp", faults=[fault]) as srv, \
             serial.serial_for_url(srv.url, timeout=0.3) as port:
         assert exchange(port, b"abcdefgh") == b"ECHO abcdefgh\n"
+        assert exchange(port, b"POS?") == b"10.000\n"  # polls do not move the ordinal
         port.write(b"abcdefgh\n")
-        time.sleep(0.1)
-        got = port.read(64)
+        got = port.read(64)  # a whole reply is 14 bytes: this waits for the timeout
         assert check(got), got
-        assert exchange(port, b"again") == b"ECHO again\n"
+        assert srv.faults.faults[0].hits == 1
+        assert exchange(port, b"abcdefgh") == b"ECHO abcdefgh\n"  # count=1: once only
+
+
+def test_fault_on_a_command_that_follows_another_hits_only_that_ordinal() -> None:
+    """``on`` + ``following`` + ``nth``: the 2nd ``ack`` that follows a ``MOVE`` is lost,
+    whatever the number of ``ack``s and polls around it."""
+    emu, _ = make_emulator()
+    fault = FaultConfig(device="dev", kind="no_reply", on="ack", following="MOVE", nth=2)
+    with EmulatorServer(emu, "tcp", faults=[fault]) as srv, \
+            serial.serial_for_url(srv.url, timeout=0.3) as port:
+        answers = []
+        for lines in ([b"ack"], [b"MOVE 11", b"ack"], [b"POS?", b"ack"], [b"MOVE 12", b"ack"],
+                      [b"MOVE 13", b"ack"]):
+            for line in lines:
+                answers.append(exchange(port, line))
+        assert answers == [b"ECHO ack\n", b"OK\n", b"ECHO ack\n", answers[3], b"ECHO ack\n",
+                           b"OK\n", b"", b"OK\n", b"ECHO ack\n"]
+        assert srv.faults.faults[0].hits == 1 and srv.faults.faults[0].matches == 3
+
+
+def test_fault_config_takes_one_trigger() -> None:
+    with pytest.raises(ValueError, match="either on"):
+        FaultConfig(device="dev", kind="garbled", on="TE", after_commands=3)
+    with pytest.raises(ValueError, match="need on"):
+        FaultConfig(device="dev", kind="garbled", nth=2)
 
 
 def test_late_reply_arrives_after_the_next_command() -> None:
@@ -97,11 +122,11 @@ def test_late_reply_arrives_after_the_next_command() -> None:
 
 def test_disconnect_mid_move_makes_the_port_vanish() -> None:
     emu, _ = make_emulator()
-    fault = FaultConfig(device="dev", kind="disconnect", after_commands=1)
+    fault = FaultConfig(device="dev", kind="disconnect", on="MOVE")
     with EmulatorServer(emu, "tcp", faults=[fault]) as srv, \
             serial.serial_for_url(srv.url, timeout=0.5) as port:
         assert exchange(port, b"MOVE 40") == b"OK\n"  # moving now: the cable is pulled
-        deadline = time.monotonic() + 2.0
+        deadline = time.monotonic() + 10.0
         while not srv.disconnected and time.monotonic() < deadline:
             time.sleep(0.01)
         assert srv.disconnected
@@ -114,11 +139,14 @@ def test_disconnect_mid_move_makes_the_port_vanish() -> None:
 
 def test_stall_fault_freezes_the_axis_while_it_reports_moving() -> None:
     emu, clock = make_emulator()
-    fault = FaultConfig(device="dev", kind="stall", after_commands=1)
+    fault = FaultConfig(device="dev", kind="stall", on="MOVE")
     with EmulatorServer(emu, "tcp", faults=[fault]) as srv, \
             serial.serial_for_url(srv.url, timeout=0.5) as port:
         assert exchange(port, b"MOVE 40") == b"OK\n"
-        time.sleep(0.05)
+        deadline = time.monotonic() + 10.0  # the server thread fires it on its next tick
+        while not srv.faults.faults[0].fired and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert srv.faults.faults[0].fired
         clock.advance(0.5)
         first = emu.axes[1].motor_position()
         clock.advance(2.0)

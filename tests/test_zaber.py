@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -425,7 +427,7 @@ def test_physics_for_x_lsm_sizes() -> None:
 
 
 def platform(url: str) -> ControllerConfig:
-    return ControllerConfig(name="platform", protocol="zaber", port=url, reply_timeout_s=0.5,
+    return ControllerConfig(name="platform", protocol="zaber", port=url, reply_timeout_s=2.0,
                             axes=[x_config(role=r, address=i, backlash_approach=0.1,
                                            poll_interval_s=0.05).model_dump()
                                   for i, r in [(1, "x"), (2, "y"), (3, "z")]])
@@ -482,7 +484,7 @@ def test_driver_detects_bad_checksum_resyncs_and_ignores_late_reply() -> None:
         assert axes[1].position() == 0.0  # read-only queries retry once after corruption
         # a reply delayed past the timeout arrives during the next exchange: not the answer
         srv.faults = FaultInjector([FaultConfig(device="platform", kind="late_reply",
-                                                delay_s=0.7)])
+                                                delay_s=3.0)])
         with pytest.raises(DeviceTimeoutError):
             chain.command(1, 1, "get limit.max")
         assert chain.command(1, 1, "get pos").data == "0"
@@ -543,7 +545,7 @@ def test_wire_faults_end_in_the_documented_error_then_the_link_recovers(
 @pytest.mark.parametrize("mode", ["pty", "tcp"])
 def test_disconnect_mid_move_is_a_transport_error(mode: str) -> None:
     emu, clock, sim = make_chain(1)
-    fault = FaultConfig(device="platform", kind="disconnect", after_commands=1)
+    fault = FaultConfig(device="platform", kind="disconnect", on="move abs")
     with EmulatorServer(emu, mode) as srv:
         ctrl = platform(srv.url)
         (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}), clock=clock)
@@ -554,4 +556,24 @@ def test_disconnect_mid_move_is_a_transport_error(mode: str) -> None:
             ax.move_to(30.0)
         assert not ax.chain.is_open
         assert sim[1].targets[-1] == pytest.approx(30.0, abs=1e-4)  # it went mid-move
+        ax.close()
+
+
+@pytest.mark.parametrize("kind", ["no_reply", "garbled", "bad_checksum"])
+def test_unreadable_reply_to_move_abs_is_sent_again_and_the_move_is_made(
+        kind: str, caplog: pytest.LogCaptureFixture) -> None:
+    """An absolute move is idempotent: after a lost or corrupt reply it is sent once more
+    (new message id), and the stage arrives (issue 15)."""
+    emu, clock, sim = make_chain(1)
+    with EmulatorServer(emu, "tcp") as srv:
+        ctrl = platform(srv.url)
+        (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}), clock=clock)
+        ax.connect()
+        ax.home()
+        srv.faults = FaultInjector([FaultConfig(device="platform", kind=kind, on="move abs")])
+        with caplog.at_level(logging.WARNING):
+            assert ax.move_to(30.0) == pytest.approx(30.0, abs=1e-3)
+        assert srv.faults.faults[0].hits == 1
+        assert "retrying (1/2)" in caplog.text
+        assert sim[1].targets[-1] == pytest.approx(30.0, abs=1e-4)
         ax.close()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
@@ -17,6 +18,7 @@ COMMAND_MODULES = ["alignd.cli.solve_cmd", "alignd.cli.analyze_cmd", "alignd.cli
                    "alignd.cli.demo_cmd"]
 
 EXIT_OK, EXIT_OUT_OF_TOLERANCE, EXIT_USAGE, EXIT_FAULT = 0, 1, 2, 3
+EXIT_BROKEN_PIPE = 141  # as for a program killed by SIGPIPE (128 + 13): output cut short
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,7 +49,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     try:
-        return int(args.func(args))
+        code = int(args.func(args))
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
+        return code
+    except BrokenPipeError:
+        # the reader went away (``alignctl status | head -1``): that is not an error to
+        # report; keep Python from complaining again when it flushes stdout at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except (InputError, ConfigError) as exc:
         print(f"alignctl: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -274,7 +275,7 @@ def _control(args: argparse.Namespace, what: str) -> int:
         reply = client.abort() if what == "abort" else client.reset()
     except ApiError as exc:
         print(f"alignctl: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE if exc.code == "forbidden" else EXIT_FAULT
+        return EXIT_USAGE if exc.code in ("forbidden", "config") else EXIT_FAULT
     if args.json:
         _print_json(reply)
     else:
@@ -318,9 +319,30 @@ def cmd_history(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _report_dir(out: Path) -> str | None:
+    """Why ``out`` cannot take the report files (``None``: it can); created if missing."""
+    if out.exists() and not out.is_dir():
+        return f"--out {out} is a file, not a folder; give a folder for run-RUN.png/.json"
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot create the folder --out {out}: {exc.strerror or exc}"
+    try:  # what the report's atomic writes need: a new file in that folder
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as exc:
+        return f"cannot write into --out {out}: {exc.strerror or exc}; choose another folder"
+    return None
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from alignd import report
 
+    out = Path(args.out)
+    problem = _report_dir(out)
+    if problem:
+        print(f"alignctl: error: {problem}", file=sys.stderr)
+        return EXIT_USAGE
     client = _client(args)
     try:
         run = client.run(args.run)
@@ -335,7 +357,12 @@ def cmd_report(args: argparse.Namespace) -> int:
         except ApiError as exc:
             print(f"alignctl: warning: frame {pick['hash'][:12]} unavailable: {exc}",
                   file=sys.stderr)
-    paths = report.write_report(run, Path(args.out), image)
+    try:
+        paths = report.write_report(run, out, image)
+    except OSError as exc:
+        print(f"alignctl: error: cannot write the report of run {args.run} into {out}: "
+              f"{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_USAGE
     if args.json:
         _print_json({k: str(v) for k, v in paths.items()})
     else:

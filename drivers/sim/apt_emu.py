@@ -220,7 +220,7 @@ class AptEmulator(Emulator):
             p1, p2 = self._buf[2], self._buf[3]
             payload = bytes(self._buf[6:6 + length]) if long_form else None
             del self._buf[:6 + length]
-            self.commands_seen += 1
+            self.note_command(f"0x{mid:04X}")
             if (dest & 0x7F) != _ME:
                 continue  # for another unit on the bus
             out += self._dispatch(mid, p1, p2, payload, src)

@@ -61,7 +61,19 @@ class Emulator(ABC):
         self.axes = axes
         self.clock = clock
         self.commands_seen = 0  # complete commands parsed so far (fault injection counts)
+        self._kinds: list[str] = []  # kinds of the commands parsed since take_kinds()
         self.target_log: TargetLog | None = None  # set by the rig when configured
+
+    def note_command(self, kind: str) -> None:
+        """Count one complete command and remember its kind (what ``FaultConfig.on``
+        matches: the SMC100 mnemonic, the Zaber command words, the APT message id)."""
+        self.commands_seen += 1
+        self._kinds.append(kind)
+
+    def take_kinds(self) -> list[str]:
+        """The kinds of the commands parsed since the last call, in order."""
+        kinds, self._kinds = self._kinds, []
+        return kinds
 
     def log_target(self, axis: SimAxis, target: float, *, accepted: bool = True,
                    command: str = "move") -> None:

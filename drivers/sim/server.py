@@ -36,71 +36,130 @@ WIRE_FAULTS = {"no_reply", "truncated", "garbled", "bad_checksum", "slow_reply",
 class _FaultState:
     cfg: FaultConfig
     hits: int = 0
+    matches: int = 0  # commands matching cfg.on seen so far
+    due: bool = False  # a matching command was just read: its reply (or firing) is next
+    latched: bool = False  # on + count 0: from the nth match on, every reply is hit
     fired: bool = False  # for one-shot faults (disconnect, stall, limit_switch)
 
 
+def command_matches(kind: str, pattern: str) -> bool:
+    """``kind`` is the command ``pattern`` names: equal, or the pattern's words first
+    (``"move abs"`` matches ``"move abs 2000"``); case-insensitive."""
+    k, p = kind.lower(), pattern.lower().strip()
+    return k == p or k.startswith(p + " ")
+
+
 class FaultInjector:
-    """Decides, reply by reply, what a configured fault does to the bytes on the wire."""
+    """Decides, command by command and reply by reply, what a configured fault does.
+
+    Faults with ``on`` are deterministic: they count matching commands (``observe``) and hit
+    the ``nth`` one, whatever the number of status polls around it (with ``count`` 0, the
+    nth and every reply after it, of any command: a controller gone mute). Faults with only
+    ``after_commands``/``probability`` count every reply (for soak tests).
+    """
 
     def __init__(self, faults: list[FaultConfig], seed: int = 0) -> None:
         self.faults = [_FaultState(f) for f in faults]
         self.rng = np.random.default_rng(seed)
         self.replies = 0
+        self._previous = ""  # the kind of the last command read on this link
+
+    def _allowed(self, st: _FaultState) -> bool:
+        if st.cfg.count and st.hits >= st.cfg.count:
+            return False
+        return st.cfg.probability >= 1.0 or bool(self.rng.random() < st.cfg.probability)
+
+    def observe(self, kinds: list[str]) -> None:
+        """Note the commands just read (in order); mark the faults they make due."""
+        for kind in kinds:
+            for st in self.faults:
+                f = st.cfg
+                if f.on is None or not command_matches(kind, f.on):
+                    continue
+                if f.following is not None and not command_matches(self._previous,
+                                                                   f.following):
+                    continue
+                st.matches += 1
+                if st.matches >= f.nth and self._allowed(st):
+                    st.due = True
+                    st.latched = f.count == 0
+            self._previous = kind
 
     def _active(self, st: _FaultState, counter: int) -> bool:
         f = st.cfg
+        if f.on is not None:
+            return st.due or st.latched
         if counter < f.after_commands:
             return False
-        if f.count and st.hits >= f.count:
-            return False
-        return f.probability >= 1.0 or self.rng.random() < f.probability
+        return self._allowed(st)
 
     def on_reply(self, reply: bytes, emulator: Emulator) -> tuple[bytes, float]:
         """The bytes to send for one reply and the delay before sending them."""
         counter = self.replies
         self.replies += 1
         delay = 0.0
+        out = reply
         for st in self.faults:
             kind = st.cfg.kind
             if kind not in WIRE_FAULTS or not self._active(st, counter):
                 continue
+            st.due = False
             st.hits += 1
             log.info("fault %s on %s reply #%d", kind, emulator.name, counter)
             if kind == "no_reply":
-                return b"", 0.0
+                out = b""
+                delay = 0.0
+                break
             if kind == "truncated":
-                reply = reply[: max(1, len(reply) // 2)]
+                out = out[: max(1, len(out) // 2)]
             elif kind == "garbled":
-                b = bytearray(reply)
+                b = bytearray(out)
                 for i in self.rng.choice(len(b), size=max(1, len(b) // 3), replace=False):
                     b[i] = int(self.rng.integers(0x21, 0x7F)) ^ (b[i] & 0x80)
-                reply = bytes(b)
+                out = bytes(b)
             elif kind == "bad_checksum":
-                reply = emulator.corrupt_checksum(reply)
+                out = emulator.corrupt_checksum(out)
             else:  # slow_reply, late_reply
                 delay = max(delay, st.cfg.delay_s)
-        return reply, delay
+        self.commands_without_reply()  # a due fault this reply did not take lapses
+        return out, delay
+
+    def commands_without_reply(self) -> None:
+        """The commands just observed got no reply of their own: wire faults due on them
+        lapse (a matching command that is never answered hits nothing)."""
+        for st in self.faults:
+            if st.cfg.kind in WIRE_FAULTS:
+                st.due = False
 
     def mechanical(self, emulator: Emulator) -> bool:
         """Fire stall/limit faults when due; True when a disconnect is due."""
         disconnect = False
         for st in self.faults:
-            kind = st.cfg.kind
-            if kind in WIRE_FAULTS or st.fired or emulator.commands_seen < st.cfg.after_commands:
+            f = st.cfg
+            if f.kind in WIRE_FAULTS or st.fired:
                 continue
-            if kind == "disconnect":
-                # mid-move when possible: wait for motion once the command count is reached
-                if any(ax.moving for ax in emulator.axes.values()) or st.cfg.after_commands == 0:
+            if f.on is not None:
+                if not st.due:
+                    continue
+                st.due = False
+            elif emulator.commands_seen < f.after_commands:
+                continue
+            if f.kind == "disconnect":
+                # by count: mid-move when possible, so wait for motion once it is reached
+                if (f.on is not None or f.after_commands == 0
+                        or any(ax.moving for ax in emulator.axes.values())):
                     st.fired = disconnect = True
+                    st.hits += 1
                 continue
             st.fired = True
+            st.hits += 1
             targets = [ax for addr, ax in emulator.axes.items()
-                       if st.cfg.axis is None or ax.name == st.cfg.axis]
+                       if f.axis is None or ax.name == f.axis]
             for ax in targets:
-                log.info("fault %s on %s axis %s", kind, emulator.name, ax.name)
-                if kind == "stall":
+                log.info("fault %s on %s axis %s", f.kind, emulator.name, ax.name)
+                if f.kind == "stall":
                     ax.inject_stall()
-                elif kind == "limit_switch":
+                elif f.kind == "limit_switch":
                     ax.inject_limit_switch("high")
         return disconnect
 
@@ -224,6 +283,10 @@ class EmulatorServer:
             log.debug("%s: send failed: %s", self.emulator.name, exc)
             self._drop_connection()
 
+    def pending_replies(self) -> int:
+        """Replies held back by a slow/late-reply fault and not yet sent."""
+        return len(self._pending)
+
     def _connected(self) -> bool:
         return self._client is not None or self._master is not None
 
@@ -269,7 +332,10 @@ class EmulatorServer:
             time.sleep(len(data) * self.byte_time_s)
         with self.lock:
             reply = self.emulator.handle(data)
-        if reply:
+            self.faults.observe(self.emulator.take_kinds())
+        if not reply:
+            self.faults.commands_without_reply()
+        else:
             out, delay = self.faults.on_reply(reply, self.emulator)
             if delay > 0:
                 self._pending.append((time.monotonic() + delay, out))

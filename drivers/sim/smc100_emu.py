@@ -277,13 +277,14 @@ class Smc100Emulator(Emulator):
 
     # ---- command interpreter -------------------------------------------------------
     def _command(self, raw: bytes) -> bytes:
-        self.commands_seen += 1
         try:
             text = raw.decode("ascii")
         except UnicodeDecodeError:
+            self.note_command("?")
             log.debug("%s: undecodable command %r ignored", self.name, raw)
             return b""
         m = _LINE.match(text)
+        self.note_command("?" if m is None else m.group(2).upper())
         if m is None:
             log.debug("%s: unparseable command %r", self.name, text)
             # no address to store the error against: the first controller takes it

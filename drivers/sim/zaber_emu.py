@@ -229,10 +229,10 @@ class ZaberEmulator(Emulator):
 
     # ---- parsing ----------------------------------------------------------------
     def _command(self, raw: bytes) -> bytes:
-        self.commands_seen += 1
         try:
             text = raw.decode("ascii")
         except UnicodeDecodeError:
+            self.note_command("?")
             return b""  # unsupported characters: the firmware discards the message
         checksum_ok = True
         if len(text) >= 3 and text[-3] == ":":
@@ -248,6 +248,7 @@ class ZaberEmulator(Emulator):
         address = header[0] if header else 0
         axis = header[1] if len(header) > 1 else 0
         mid = header[2] if len(header) > 2 else None
+        self.note_command(" ".join(tokens).lower())
         if not checksum_ok:  # every device rejects it, whatever the address
             return b"".join(self._reply(d, axis, mid if mid is not None and 0 <= mid <= 99
                                         else None, False, "BADDATA")
