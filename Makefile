@@ -4,12 +4,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench-quick venv browser stress
+.PHONY: demo test test-newest bench-quick venv browser stress
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev,bluesky]'
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev,bluesky]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -19,15 +19,34 @@ SEED ?=
 demo: $(STAMP)
 	$(BIN)/alignctl demo --config configs/sim.yaml --out out/demo $(if $(SEED),--seed $(SEED))
 
-# README command 2: lint, the benchmarks in their small CI mode, the test suite (last, so
+# README command 2: lint, the type check, the import contracts, the benchmarks in their small CI mode, the test suite (last, so
 # its summary closes the output)
 test: $(STAMP) browser
 	$(BIN)/ruff check alignd drivers tests bench
+	$(BIN)/mypy
+	$(BIN)/lint-imports
 	$(MAKE) --no-print-directory bench-quick
 	$(BIN)/python -m pytest
 
 bench-quick: $(STAMP)
 	@set -e; for b in bench/*.py; do echo "== $$b --quick"; $(BIN)/python $$b --quick; done
+
+# The type check and the suite on the newest supported Python as well. PY_NEWEST: a Python
+# 3.13; pyenv's when there is one. CI runs a fast subset (NEWEST_ARGS in .ci/run): the fault,
+# soak, solver-accuracy and wheel tests (Python-independent, minutes) run on $(PY) only.
+NEWEST_ARGS ?=
+PY_NEWEST ?= $(or $(shell pyenv prefix 3.13 2>/dev/null | sed 's|$$|/bin/python3|'),python3.13)
+VENV_NEWEST := .venv-newest
+$(VENV_NEWEST)/.installed: pyproject.toml constraints.txt
+	test -x $(VENV_NEWEST)/bin/python || $(PY_NEWEST) -m venv $(VENV_NEWEST)
+	$(VENV_NEWEST)/bin/python -m pip install --quiet --upgrade pip
+	$(VENV_NEWEST)/bin/python -m pip install --quiet -c constraints.txt -e '.[dev]'
+	touch $@
+
+test-newest: $(VENV_NEWEST)/.installed
+	$(VENV_NEWEST)/bin/python --version
+	$(VENV_NEWEST)/bin/mypy --python-version 3.13
+	$(VENV_NEWEST)/bin/python -m pytest $(NEWEST_ARGS)
 
 # the whole suite 5 times with one CPU-bound process per core beside it (never flakes)
 RUNS ?= 5

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
-import inspect
 import logging
 import math
 import os
@@ -38,7 +37,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
-from typing import Any
+from types import FrameType
+from typing import Any, Literal, Protocol, TextIO, TypeGuard, get_args
 
 from alignd import __version__
 from alignd.api import ApiServer, Authoriser, Peer, Refused
@@ -54,6 +54,10 @@ from alignd.config import (
 )
 from alignd.errors import AligndError, ConfigError, StateError
 from alignd.logsetup import configure_logging
+from alignd.procedures.commission import CommissionRecord
+from alignd.procedures.events import ProgressCallback, ProgressEvent
+from alignd.procedures.recorder import RunRecorder
+from alignd.procedures.rig import AbortEvent, Rig
 from alignd.store import SqliteRecorder, Store, StoreError, jsonable
 from alignd.web.frames import LiveFrames, grab_previews, tap_cameras
 from drivers.axis import Axis
@@ -65,11 +69,47 @@ EXIT_OK, EXIT_USAGE, EXIT_FAULT = 0, 2, 3
 DEFAULT_STOP_TIMEOUT_S = 10.0
 CAMERA_CHECK_TIMEOUT_S = 5.0  # one frame from each camera at start and after reset
 EVENT_BUFFER = 5000  # live progress events kept in memory (all runs)
-BUSY_STATES = ("aligning", "checking", "commissioning")
-RUN_STATES = {"align": "aligning", "check": "checking", "commission": "commissioning"}
+State = Literal["starting", "idle", "aligning", "checking", "commissioning", "fault"]
+STATES: tuple[State, ...] = get_args(State)
+BUSY_STATES: tuple[State, ...] = ("aligning", "checking", "commissioning")
+RunKind = Literal["align", "check", "commission"]
+JobKind = Literal["align", "check", "commission", "reset"]
+RUN_STATES: dict[str, State] = {"align": "aligning", "check": "checking",
+                                "commission": "commissioning"}
 
-Procedure = Callable[..., Any]  # (rig, cfg, *, progress, abort, recorder) -> RunResult
-RigFactory = Callable[[AligndConfig], Any]  # config -> alignd.procedures.rig.Rig (connected)
+
+def _is_run_kind(kind: str) -> TypeGuard[RunKind]:
+    return kind in get_args(RunKind)
+
+
+class ProcedureResult(Protocol):
+    """What a procedure returns (``alignd.procedures.RunResult``)."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The run-result contract object."""
+        ...
+
+    @property
+    def config_error(self) -> bool:
+        """The fault was caused by the config (alignctl exits 2)."""
+        ...
+
+    @property
+    def details(self) -> dict[str, Any] | None:
+        """The full record kept with the run."""
+        ...
+
+
+class Procedure(Protocol):
+    """A run the daemon executes (``run_alignment``, ``run_check``, ``run_commission``).
+    ``commission``: the latest valid commission record for align and check, else None."""
+
+    def __call__(self, rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback,
+                 abort: threading.Event, recorder: RunRecorder, run_id: str,
+                 commission: CommissionRecord | None) -> ProcedureResult: ...
+
+
+RigFactory = Callable[[AligndConfig], Rig]  # config -> rig (connected, or by the daemon)
 
 
 # ---- systemd notification -----------------------------------------------------------------
@@ -136,20 +176,9 @@ class Notifier:
 
 
 # ---- the worker's jobs --------------------------------------------------------------------
-class AbortEvent(threading.Event):
-    """An abort flag that carries its reason (the procedures report it)."""
-
-    reason: str | None = None
-
-    def request(self, reason: str) -> None:
-        if not self.is_set():
-            self.reason = reason
-            self.set()
-
-
 @dataclass
 class _Job:
-    kind: str  # align | check | reset
+    kind: JobKind
     run_id: int | None = None
     started_by: str = "user"
     user: str | None = None
@@ -157,24 +186,19 @@ class _Job:
     config: AligndConfig | None = None  # reset: the config to reconnect with
 
 
-def _result_dict(result: Any) -> tuple[dict[str, Any], Any]:
+def _result_dict(result: ProcedureResult) -> tuple[dict[str, Any], Any]:
     """A procedure's ``RunResult`` as (the run-result contract's dict, its details)."""
-    out = result.to_json() if hasattr(result, "to_json") else result
-    if isinstance(out, str):
-        import json
-
-        out = json.loads(out)
+    out = result.to_json()
     if not isinstance(out, dict):
         raise StateError(f"procedure returned {type(result).__name__}, not a run result")
     out = jsonable(out)
-    if getattr(result, "config_error", False):
+    if result.config_error:
         out["config_error"] = True  # a fault caused by the config: alignctl exits 2
-    return out, jsonable(getattr(result, "details", None))
+    return out, jsonable(result.details)
 
 
-def _identities(rig: Any) -> dict[str, Any]:
-    return {role: jsonable(ident) for role, ident in (getattr(rig, "identities", {}) or {}
-                                                      ).items()}
+def _identities(rig: Rig) -> dict[str, Any]:
+    return {role: jsonable(ident) for role, ident in rig.identities.items()}
 
 
 def _camera_state(source: str, state: str, *, size: tuple[int, int] | None = None,
@@ -182,13 +206,6 @@ def _camera_state(source: str, state: str, *, size: tuple[int, int] | None = Non
     """One camera in ``status``: its source, ok / fault / not checked, frame size, why."""
     return {"source": source, "state": state, "size": list(size) if size else None,
             "error": error}
-
-
-def _accepts(fn: Callable[..., Any], name: str) -> bool:
-    try:
-        return name in inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return False
 
 
 def default_procedures() -> dict[str, Procedure]:
@@ -220,7 +237,7 @@ class Daemon:
         self._config_json = cfg.model_dump_json()
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
-        self._state = "starting"
+        self._state: State = "starting"
         self._fault: str | None = None
         self._current: _Job | None = None
         self._progress: dict[str, Any] | None = None
@@ -229,7 +246,7 @@ class Daemon:
         self._seq = 0
         self._jobs: queue.Queue[_Job | None] = queue.Queue()
         self._stopping = threading.Event()
-        self._rig: Any = None
+        self._rig: Rig | None = None
         self._devices: dict[str, Any] = {}
         self._cameras: dict[str, dict[str, Any]] = {
             c.role: _camera_state(c.source, "not checked") for c in cfg.cameras}
@@ -275,11 +292,11 @@ class Daemon:
         return True
 
     @property
-    def state(self) -> str:
+    def state(self) -> State:
         return self._state
 
     # ---- the worker -----------------------------------------------------------------
-    def _set_state(self, state: str, fault: str | None = None) -> None:
+    def _set_state(self, state: State, fault: str | None = None) -> None:
         with self._cond:
             if state == "fault" and self._state != "fault":
                 self.faults += 1
@@ -326,7 +343,7 @@ class Daemon:
         try:
             rig = self.rig_factory(self.cfg)
             self._feed_watchdog_while_axes_wait(rig)
-            if not getattr(rig, "identities", None) and hasattr(rig, "connect"):
+            if not rig.identities:
                 rig.connect()
             self._check_cameras(rig)
         except Exception as exc:  # any failure leaves the daemon up, in fault, saying why
@@ -415,8 +432,7 @@ class Daemon:
         self.live.set_unavailable("the rig is closed (reconnecting or stopping)")
         if rig is None:
             return
-        errors = rig.stop_all() if hasattr(rig, "stop_all") else []
-        for e in errors or []:
+        for e in rig.stop_all():
             log.error("stop on shutdown: %s", e)
         with contextlib.suppress(Exception):
             rig.close()
@@ -436,13 +452,13 @@ class Daemon:
             if self._rig is None:
                 raise StateError("the rig is not connected")
             proc = self.procedures[job.kind]
-            extra: dict[str, Any] = {"run_id": str(run_id)} if _accepts(proc, "run_id") \
-                else {}
-            if job.kind in ("align", "check") and _accepts(proc, "commission"):
-                extra["commission"], note = self.commission_record()
+            commission = None
+            if job.kind in ("align", "check"):
+                commission, note = self.commission_record()
                 recorder.event(note)
             raw = proc(self._rig, self.cfg, progress=lambda ev: self._on_progress(run_id, ev),
-                       abort=job.abort, recorder=recorder, **extra)
+                       abort=job.abort, recorder=recorder, run_id=str(run_id),
+                       commission=commission)
             result, details = _result_dict(raw)
             verdict = str(result.get("verdict") or "fault")
             reason = str(result.get("reason") or "")
@@ -455,7 +471,7 @@ class Daemon:
             reason = (job.abort.reason or str(exc)) if verdict == "aborted" else \
                 f"{type(exc).__name__}: {exc}"
         if verdict in ("fault", "aborted") or crashed:
-            for e in (self._rig.stop_all() if self._rig is not None else []) or []:
+            for e in self._rig.stop_all() if self._rig is not None else []:
                 log.error("run %d: stopping after %s: %s", run_id, verdict, e)
             self._record_positions(run_id, recorder)
         if result is None:
@@ -463,8 +479,8 @@ class Daemon:
                       "offset_norm_um": None, "U_um": None, "iterations": 0,
                       "tilt_deg": None, "yaw_deg": None}
         result["run_id"] = run_id
-        truth = getattr(self._rig, "truth", None)
-        if "truth" not in result and callable(truth):
+        truth = self._rig.truth if self._rig is not None else None
+        if "truth" not in result and truth is not None:
             try:
                 result["truth"] = jsonable(truth())
             except Exception as exc:  # the truth block is informative only
@@ -495,8 +511,8 @@ class Daemon:
 
     def _record_positions(self, run_id: int, recorder: SqliteRecorder) -> None:
         """After a stop, note where every axis ended up (or that it is unknown)."""
-        axes = getattr(self._rig, "axes", None)
-        if not isinstance(axes, dict) or not axes:
+        axes = self._rig.axes if self._rig is not None else {}
+        if not axes:
             return
         parts = []
         for role, ax in axes.items():
@@ -518,11 +534,9 @@ class Daemon:
             self._events.append(event)
             self._cond.notify_all()
 
-    def _on_progress(self, run_id: int, ev: Any) -> None:
+    def _on_progress(self, run_id: int, ev: ProgressEvent) -> None:
         self.notifier.watchdog()
-        d = jsonable(ev.to_dict() if hasattr(ev, "to_dict") else ev)
-        if not isinstance(d, dict):
-            d = {"message": str(d)}
+        d = jsonable(ev.to_dict())
         d.pop("timestamp", None)
         with self._cond:
             self._progress = d
@@ -537,12 +551,11 @@ class Daemon:
         self.notifier.status(status_line(self.status()))
 
     # ---- commissioning -----------------------------------------------------------------
-    def commission_record(self) -> tuple[Any, str]:
+    def commission_record(self) -> tuple[CommissionRecord | None, str]:
         """The latest valid commission record (or None) and a sentence saying which/why not.
 
         Valid: the newest finished commission run, verdict ``commissioned``, made with this
         config (hash) and these devices (models and serial numbers)."""
-        from alignd.procedures.commission import CommissionRecord
 
         last = self.store.latest_run("commission")
         if last is None:
@@ -619,19 +632,18 @@ class Daemon:
                 if evs or not live or remaining <= 0:
                     break
                 self._cond.wait(remaining)
+        out: dict[str, Any] = {"run_id": run_id, "events": evs,
+                               "next": evs[-1]["seq"] if evs else after, "done": not live}
         if not live:
             st = self.store.run_status(run_id)
             if st is None:
                 return None
-        out: dict[str, Any] = {"run_id": run_id, "events": evs,
-                               "next": evs[-1]["seq"] if evs else after, "done": not live}
-        if not live:
             out["status"], out["verdict"] = st
             out["result"] = self.store.result(run_id)
         return out
 
     def start_run(self, kind: str, started_by: str, peer: Peer) -> dict[str, Any]:
-        if kind not in self.procedures:
+        if kind not in self.procedures or not _is_run_kind(kind):
             raise Refused(HTTPStatus.NOT_FOUND, "not_found", f"no procedure {kind!r}")
         with self._cond:
             if self._stopping.is_set():
@@ -771,7 +783,7 @@ def resolve_state_dir(arg: str | None, env: Mapping[str, str] | None = None) -> 
     return Path(base) / "alignd"
 
 
-def lock_state_dir(state_dir: Path) -> Any:
+def lock_state_dir(state_dir: Path) -> TextIO:
     """Hold ``<state_dir>/alignd.lock`` (flock) for the daemon's lifetime: one daemon per
     history. Without it a second instance would mark the first one's running run as
     interrupted. The kernel drops the lock when the process dies, even by SIGKILL."""
@@ -884,7 +896,7 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     if rig_factory is None:
         seed = args.seed
 
-        def rig_factory(cfg: AligndConfig) -> Any:
+        def rig_factory(cfg: AligndConfig) -> Rig:
             from alignd.hardware import open_rig
 
             return open_rig(cfg, seed=seed)
@@ -923,7 +935,7 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
     stop = threading.Event()
     received: list[str] = []
 
-    def on_signal(signum: int, _frame: Any) -> None:
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
         received.append(signal.Signals(signum).name)
         stop.set()
 

@@ -7,23 +7,21 @@ instrument speaks the same bytes as the real one.
 
 from __future__ import annotations
 
-import importlib
 import logging
+from typing import Literal
 
 from alignd.config import AligndConfig
 from alignd.errors import ConfigError
 from alignd.procedures.rig import Rig
 from drivers.axis import Axis
 from drivers.camera import Camera, open_camera
+from drivers.registry import make_axes
 
 log = logging.getLogger(__name__)
 
-DRIVERS = {"smc100": "drivers.newport_smc100", "apt": "drivers.thorlabs_apt",
-           "zaber": "drivers.zaber_ascii"}
-
 
 def open_rig(cfg: AligndConfig, *, seed: int | None = None,
-             transport: str | None = None) -> Rig:
+             transport: Literal["tcp", "pty", "both"] | None = None) -> Rig:
     """Start what is simulated and create (not yet connect) every axis and camera.
 
     The returned rig's ``close()`` also stops the simulated rig. ``truth`` is set only
@@ -32,11 +30,9 @@ def open_rig(cfg: AligndConfig, *, seed: int | None = None,
     sim_rig = None
     if cfg.sim is not None and (any(c.port == "sim" for c in cfg.controllers)
                                 or any(c.source == "sim" for c in cfg.cameras)):
-        from drivers.sim.rig import SimRig  # only when the config asks for the simulator
+        from alignd.simulated import open_sim_rig  # only when the config asks for it
 
-        sim_rig = SimRig(cfg.controllers, cfg.cameras, cfg.sim, seed=seed,
-                         transport=transport)  # type: ignore[arg-type]
-        sim_rig.start()
+        sim_rig = open_sim_rig(cfg, seed=seed, transport=transport)
     try:
         axes: dict[str, Axis] = {}
         for ctl in cfg.controllers:
@@ -45,8 +41,7 @@ def open_rig(cfg: AligndConfig, *, seed: int | None = None,
                 assert sim_rig is not None and cfg.sim is not None
                 ctl = ctl.model_copy(update={"port": sim_rig.url(ctl.name)})
                 time_scale = cfg.sim.time_scale
-            module = importlib.import_module(DRIVERS[ctl.protocol])
-            for ax in module.make_axes(ctl, time_scale=time_scale):
+            for ax in make_axes(ctl, time_scale=time_scale):
                 axes[ax.config.role] = ax
         cameras: dict[str, Camera] = {}
         for cam in cfg.cameras:

@@ -97,13 +97,13 @@ class RepeatFilter(logging.Filter):
         return True
 
 
-class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+class _StderrHandler(logging.StreamHandler):
     """Writes to whatever ``sys.stderr`` is at the time (a test harness may swap it)."""
 
     def __init__(self) -> None:
         super().__init__(sys.stderr)
 
-    @property  # type: ignore[override]
+    @property
     def stream(self) -> TextIO:
         return sys.stderr
 
@@ -116,7 +116,7 @@ def configure_logging(level: int, stream: TextIO | None = None,
                       env: Mapping[str, str] | None = None, window_s: float = 60.0
                       ) -> logging.Handler:
     """Root logging for the daemon: one stderr handler, formatted for where it goes."""
-    handler: logging.StreamHandler = (  # type: ignore[type-arg]
+    handler: logging.StreamHandler = (
         _StderrHandler() if stream is None else logging.StreamHandler(stream))
     stream = sys.stderr if stream is None else stream
     if under_journald(stream, env):

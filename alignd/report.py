@@ -260,7 +260,7 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
     pick = pick_frame(run)
     sweep = (pick or {}).get("sweep") or ((run.get("sweeps") or [None])[-1])
     if image is None:
-        base = np.full((720, 1280, 3), 40, np.uint8)  # the reference camera's size
+        base: np.ndarray = np.full((720, 1280, 3), 40, np.uint8)  # the reference camera's size
         _text(base, "no saved frame", (20, 40), 1.0)
     else:
         base = to_bgr8(image)

@@ -63,7 +63,8 @@ def reference_world(cfg: AligndConfig) -> AligndConfig:
         "controllers": ctls, "sim": cfg.sim.model_copy(update={"world": w}),
         "procedure": cfg.procedure.model_copy(update={"decision_rule": "guarded",
                                                       "stage_repeatability_um": 1.0})})
-from drivers.sim.direct import build_direct_rig, scene_tracker  # noqa: E402
+from alignd.simulated import build_direct_rig  # noqa: E402
+from drivers.sim.direct import scene_tracker  # noqa: E402
 
 
 def standin_tools(seed: int, sigma_px: float) -> Tools:

@@ -11,7 +11,6 @@ controllers' baud rates ("paced": what to expect on hardware, device latency asi
 from __future__ import annotations
 
 import argparse
-import importlib
 import statistics
 import sys
 import time
@@ -22,7 +21,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from alignd.config import load_config  # noqa: E402
-from alignd.hardware import DRIVERS  # noqa: E402
+from drivers import registry  # noqa: E402
 from drivers.sim.rig import SimRig  # noqa: E402
 
 
@@ -49,8 +48,7 @@ def main() -> int:
         with SimRig(cfg.controllers, [], sim, seed=1, transport=transport) as rig:
             for ctl in cfg.controllers:
                 url_ctl = ctl.model_copy(update={"port": rig.url(ctl.name)})
-                module = importlib.import_module(DRIVERS[ctl.protocol])
-                ax = module.make_axes(url_ctl, time_scale=cfg.sim.time_scale)[0]
+                ax = registry.make_axes(url_ctl, time_scale=cfg.sim.time_scale)[0]
                 with ax:
                     ax.identify()
                     for what, fn in (("position", ax.position), ("status", ax.status)):

@@ -3,23 +3,27 @@
 Units at this interface are mm (linear) and degrees (rotary), as floats. A driver
 implements the ``_``-prefixed primitives; this base class owns the behaviour that must be
 the same for every vendor: soft-limit and finiteness checks before any byte is sent, the
-backlash approach from one side, the move timeout from distance/speed/acceleration, and
-read-back verification within a deadband with bounded retries.
+backlash approach from one side, the move timeout from distance/speed/acceleration,
+read-back verification within a deadband with bounded retries, and the polling waits (of a
+move and of homing) on the axis' ``Clock``, which a caller's ``cancel`` event interrupts.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
-import time
+import threading
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Literal, Self
 
 from drivers import stages
+from drivers.clock import SYSTEM_CLOCK, Clock
 from drivers.config import AxisConfig
 from drivers.errors import (
+    Cancelled,
     ConfigMismatchError,
     DeviceFault,
     DeviceTimeoutError,
@@ -77,12 +81,13 @@ def move_timeout_s(distance: float, speed: float, accel: float, margin: float = 
 class Axis(ABC):
     """One motion axis. Context manager; ``connect``/``close`` are idempotent."""
 
-    def __init__(self, config: AxisConfig, name: str | None = None) -> None:
+    def __init__(self, config: AxisConfig, name: str | None = None, *,
+                 clock: Clock | None = None) -> None:
         self.config = config
         self.name = name or config.role
         self.position_known = False  # False until homed or verified; set False on disconnect
-        self._sleep = time.sleep  # injectable, with _now, so tests need not wait
-        self._now = time.monotonic
+        self.clock: Clock = clock or SYSTEM_CLOCK  # a manual clock makes waits instant
+        self._cancel: threading.Event | None = None  # set by ``cancel_on``
         # Called on every poll while the axis waits for the controller (homing, moves):
         # the daemon feeds the systemd watchdog from here, as a homing can take minutes.
         self.on_wait: list[Callable[[], None]] = []
@@ -128,11 +133,13 @@ class Axis(ABC):
         return None
 
     # ---- shared behaviour ------------------------------------------------------------
-    def _wait(self, dt: float) -> None:
-        """One poll interval of waiting for the controller (every wait goes through here)."""
+    def _wait(self, command: str) -> None:
+        """One poll interval of waiting for the controller (every wait goes through here):
+        the ``on_wait`` hooks run, a cancel set by ``cancel_on`` ends the wait."""
         for fn in self.on_wait:
             fn()
-        self._sleep(dt)
+        self.check_cancel(command)
+        self.clock.sleep(self.config.poll_interval_s)
 
     def check_identity(self, ident: Identity) -> list[str]:
         """Compare what the controller says with the config; return warnings.
@@ -201,7 +208,25 @@ class Axis(ABC):
                 device=self.name, port=self.port)
         return float(target)
 
-    def move_to(self, target: float, approach: Literal["+", "-"] | None = None) -> float:
+    @contextlib.contextmanager
+    def cancel_on(self, cancel: threading.Event | None) -> Iterator[None]:
+        """Within the block, every wait of this axis (moves, homing) ends with ``Cancelled``
+        as soon as ``cancel`` is set (the caller stops the axis)."""
+        saved, self._cancel = self._cancel, cancel
+        try:
+            yield
+        finally:
+            self._cancel = saved
+
+    def check_cancel(self, command: str, cancel: threading.Event | None = None) -> None:
+        """Raise ``Cancelled`` if ``cancel`` (or the one of ``cancel_on``) is set."""
+        ev = cancel if cancel is not None else self._cancel
+        if ev is not None and ev.is_set():
+            raise Cancelled(f"{command} cancelled", device=self.name, port=self.port,
+                            command=command)
+
+    def move_to(self, target: float, approach: Literal["+", "-"] | None = None, *,
+                cancel: threading.Event | None = None) -> float:
         """Move to ``target``, approaching from the configured side; return the read-back.
 
         ``approach`` overrides the configured side for this move (commissioning arrives
@@ -210,8 +235,13 @@ class Axis(ABC):
         Blocks until the move is done and verified within the deadband, retrying at most
         ``config.retries`` times. Raises ``LimitError`` before moving for a bad target,
         ``DeviceTimeoutError`` when a move outlasts its computed timeout, ``DeviceFault``
-        on a controller fault, ``MissedTargetError`` when retries are exhausted.
+        on a controller fault, ``MissedTargetError`` when retries are exhausted,
+        ``Cancelled`` when ``cancel`` is set while waiting (the axis is not stopped).
         """
+        with self.cancel_on(cancel if cancel is not None else self._cancel):
+            return self._move_verified(target, approach)
+
+    def _move_verified(self, target: float, approach: Literal["+", "-"] | None) -> float:
         target = self.check_target(target)
         cfg = self.config
         sign = 1.0 if (approach or cfg.approach) == "+" else -1.0
@@ -250,17 +280,37 @@ class Axis(ABC):
         self._start_move(target)
         self.wait_until_stopped(timeout, command=f"move to {target:.6g}")
 
+    def poll_until(self, done: Callable[[], bool], timeout_s: float, *, command: str,
+                   timeout_message: str, stop_on_timeout: bool = True) -> None:
+        """Call ``done`` every poll interval until it is true (it raises on a fault).
+
+        Raises ``DeviceTimeoutError`` with ``timeout_message`` after ``timeout_s`` of the
+        axis' clock (stopping the axis first unless told not to), ``Cancelled`` when the
+        cancel event of ``cancel_on`` is set. The drivers' homing waits are this loop.
+        """
+        deadline = self.clock.now() + timeout_s
+        while True:
+            now = self.clock.now()  # before the poll: a late answer is no timeout
+            if done():
+                return
+            if now > deadline:
+                if stop_on_timeout:
+                    self.stop()
+                raise DeviceTimeoutError(timeout_message, device=self.name, port=self.port,
+                                         command=command)
+            self._wait(command)
+
     def wait_until_stopped(self, timeout_s: float, command: str = "move") -> AxisStatus:
         """Poll status until not moving; stop and raise on a fault, limit or timeout.
 
         Each poll's time is taken before its requests are sent: a "still moving" answer
         is then true of that time or later, so a slow link or a busy host can never turn
         a move that finished in time into a timeout or a stall."""
-        deadline = self._now() + timeout_s
+        deadline = self.clock.now() + timeout_s
         last_pos = None
-        still_since = self._now()
+        still_since = self.clock.now()
         while True:
-            now = self._now()
+            now = self.clock.now()
             st = self.status()
             if st.stalled or st.fault:
                 self.stop()
@@ -287,7 +337,7 @@ class Axis(ABC):
                 self.stop()
                 raise DeviceTimeoutError(f"move did not finish within {timeout_s:.1f} s",
                                          device=self.name, port=self.port, command=command)
-            self._wait(self.config.poll_interval_s)
+            self._wait(command)
 
 
 def _travel(model: stages.StageModel) -> str:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from drivers.stages import resolve as resolve_stage
 
@@ -58,11 +58,31 @@ class ControllerConfig(Strict):
     """One controller (one serial port) and the axes it drives."""
 
     name: str
-    protocol: Literal["smc100", "apt", "zaber"]
+    protocol: str = Field(..., description=(
+        "a registered protocol (drivers.registry): smc100, apt, zaber or a plug-in's"))
     port: str = Field(..., description="pyserial URL or device path; 'sim' = built-in emulator")
     baudrate: int | None = None
     reply_timeout_s: float = Field(0.5, gt=0)
     axes: list[AxisConfig] = Field(..., min_length=1)
+
+    @field_validator("protocol")
+    @classmethod
+    def _registered(cls, value: str) -> str:
+        from drivers import registry  # imports the Axis base class, which imports this module
+
+        known = registry.names()
+        if value not in known:
+            raise ValueError(f"unknown protocol {value!r}; known: {', '.join(known)}")
+        return value
+
+    @model_validator(mode="after")
+    def _simulable(self) -> ControllerConfig:
+        from drivers import registry
+
+        if self.port == "sim" and not registry.get(self.protocol).simulated:
+            raise ValueError(f"protocol {self.protocol!r} has no emulator: use a real port, "
+                             "not 'sim'")
+        return self
 
     @model_validator(mode="after")
     def _stages_known_and_limits_inside_travel(self) -> ControllerConfig:

@@ -71,3 +71,15 @@ class MissedTargetError(DeviceFault):
 
 class CameraError(DeviceError):
     """No frame, a stale frame, or a source that cannot be opened."""
+
+
+class Cancelled(AligndError):
+    """A wait (a move, homing) ended because the caller's cancel event was set.
+
+    Not a ``DeviceError``: the device is fine, the caller asked to stop waiting (and stops
+    the axes itself)."""
+
+    def __init__(self, message: str, *, device: str | None = None, port: str | None = None,
+                 command: str | None = None) -> None:
+        self.device, self.port, self.command = device, port, command
+        super().__init__(f"{message} (device {device})" if device else message)

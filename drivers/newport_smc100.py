@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import TypeVar, overload
 
 from drivers.axis import Axis, AxisStatus, Identity
+from drivers.clock import Clock
 from drivers.config import AxisConfig, ControllerConfig
 from drivers.errors import (
     DeviceError,
@@ -282,8 +283,8 @@ class Smc100Axis(Axis):
     reports_serial = False  # the ASCII protocol has no serial-number query
 
     def __init__(self, config: AxisConfig, transport: SerialTransport,
-                 name: str | None = None) -> None:
-        super().__init__(config, name)
+                 name: str | None = None, *, clock: Clock | None = None) -> None:
+        super().__init__(config, name, clock=clock)
         if not 1 <= config.address <= 31:
             raise ValueError(f"{self.name}: SMC100 address {config.address} outside 1..31")
         self.address = config.address
@@ -570,23 +571,22 @@ class Smc100Axis(Axis):
                               f"({'; '.join(ts.error_messages) or 'no positioner error'})",
                               device=self.name, port=self.port, command=self._cmd_text("OR"))
         timeout = cfg.home_timeout_s / max(cfg.time_scale, 1e-9)
-        deadline = time.monotonic() + timeout
-        while True:
+
+        def homed() -> bool:
             ts = self._status_raw()
-            fam = ts.family
-            if fam == READY:
-                break
-            if fam != HOMING:
+            if ts.family == READY:
+                return True
+            if ts.family != HOMING:
                 raise DeviceFault(f"homing failed: {ts.state_name}"
                                   + (f" ({'; '.join(ts.error_messages)})"
                                      if ts.error_messages else ""),
                                   device=self.name, port=self.port,
                                   command=self._cmd_text("OR"))
-            if time.monotonic() > deadline:  # home() stops the stage
-                raise DeviceTimeoutError(f"homing did not finish within {timeout:.1f} s",
-                                         device=self.name, port=self.port,
-                                         command=self._cmd_text("OR"))
-            self._wait(cfg.poll_interval_s)
+            return False
+
+        # on a timeout home() stops the stage
+        self.poll_until(homed, timeout, command=self._cmd_text("OR"), stop_on_timeout=False,
+                        timeout_message=f"homing did not finish within {timeout:.1f} s")
         self.position_known = True
         self._apply_profile()
 
@@ -673,7 +673,8 @@ class Smc100Axis(Axis):
             log.warning("%s: could not stop after a link error: %s", self.name, exc.detail)
 
 
-def make_axes(controller: ControllerConfig, time_scale: float = 1.0) -> list[Smc100Axis]:
+def make_axes(controller: ControllerConfig, time_scale: float = 1.0, *,
+              clock: Clock | None = None) -> list[Smc100Axis]:
     """The axes of one SMC100 chain, all sharing one transport on the controller's port."""
     if controller.protocol != "smc100":
         raise ValueError(f"controller {controller.name}: protocol {controller.protocol!r} "
@@ -686,5 +687,5 @@ def make_axes(controller: ControllerConfig, time_scale: float = 1.0) -> list[Smc
                                 baudrate=controller.baudrate or BAUDRATE,
                                 timeout_s=controller.reply_timeout_s, xonxoff=True)
     return [Smc100Axis(ax.model_copy(update={"time_scale": time_scale}), transport,
-                       name=ax.role)
+                       name=ax.role, clock=clock)
             for ax in controller.axes]

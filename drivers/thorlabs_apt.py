@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 
 from drivers.axis import Axis, AxisStatus, Identity
+from drivers.clock import Clock
 from drivers.config import AxisConfig, ControllerConfig
 from drivers.errors import (
     DeviceError,
@@ -787,8 +788,9 @@ class AptAxis(Axis):
     stage model that sets the counts per unit (MTS25-Z8, MTS50-Z8, PRM1-Z8, K10CR1).
     """
 
-    def __init__(self, config: AxisConfig, link: AptLink, name: str | None = None) -> None:
-        super().__init__(config, name)
+    def __init__(self, config: AxisConfig, link: AptLink, name: str | None = None, *,
+                 clock: Clock | None = None) -> None:
+        super().__init__(config, name, clock=clock)
         self.link = link
         self.channel = config.address
         channel_ident(self.channel)  # validates
@@ -981,26 +983,26 @@ class AptAxis(Axis):
         homed_before = ev.homed
         self.link.send(pack_short(Msg.MOT_MOVE_HOME, self.channel, dest=self.link.dest), cmd)
         timeout = self.config.home_timeout_s / max(self.config.time_scale, 1e-9)
-        deadline = time.monotonic() + timeout
         seen_homing = False
-        while True:
+
+        def homed() -> bool:
+            nonlocal seen_homing
             bits = self.status_bits()
             if ev.homed > homed_before:
-                break
+                return True
             seen_homing |= bool(bits & StatusBit.HOMING)
             if seen_homing and bits & StatusBit.HOMED and not bits & MOTION_BITS:
                 log.debug("%s: homed bit set without MOVE_HOMED; accepting", self.name)
-                break
+                return True
             st = decode_status(bits)
             if st.stalled or st.fault or not bits & StatusBit.ENABLED:
                 self.stop()
                 raise DeviceFault(f"homing failed: {'; '.join(st.messages) or st.raw}",
                                   device=self.name, port=self.port, command=cmd)
-            if time.monotonic() > deadline:
-                self.stop()
-                raise DeviceTimeoutError(f"no MOVE_HOMED within {timeout:.1f} s",
-                                         device=self.name, port=self.port, command=cmd)
-            self._wait(self.config.poll_interval_s)
+            return False
+
+        self.poll_until(homed, timeout, command=cmd,
+                        timeout_message=f"no MOVE_HOMED within {timeout:.1f} s")
         self.position_known = True
         log.info("%s: homed", self.name)
 
@@ -1020,12 +1022,13 @@ class AptAxis(Axis):
                                   dest=self.link.dest), "MOT_MOVE_STOP")
 
 
-def make_axes(controller: ControllerConfig, time_scale: float = 1.0) -> list[AptAxis]:
+def make_axes(controller: ControllerConfig, time_scale: float = 1.0, *,
+              clock: Clock | None = None) -> list[AptAxis]:
     """The axes of one APT controller config, sharing one link (one serial port)."""
     if controller.protocol != "apt":
         raise ValueError(f"controller {controller.name} speaks {controller.protocol}, not apt")
     link = AptLink(controller.port, device=controller.name,
                    baudrate=controller.baudrate or BAUDRATE,
                    reply_timeout_s=controller.reply_timeout_s)
-    return [AptAxis(ax.model_copy(update={"time_scale": time_scale}), link)
+    return [AptAxis(ax.model_copy(update={"time_scale": time_scale}), link, clock=clock)
             for ax in controller.axes]

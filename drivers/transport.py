@@ -29,6 +29,8 @@ try:  # pyserial's POSIX backend lets termios.error (not an OSError) escape, e.g
                                                    termios.error)
 except ImportError:  # pragma: no cover - Windows
     _IO_ERRORS = (OSError, serial.SerialException)
+# a port closed under a blocked read can raise TypeError inside pyserial
+_READ_ERRORS: tuple[type[BaseException], ...] = (*_IO_ERRORS, TypeError)
 
 
 class SerialTransport:
@@ -54,12 +56,13 @@ class SerialTransport:
         # a loaded machine would see a phantom timeout. A floor keeps that from happening
         # while a write really blocked (flow control held off) still ends in bounded time.
         write_timeout = max(self.timeout_s, WRITE_TIMEOUT_FLOOR_S)
-        kwargs: dict[str, object] = {"baudrate": self.baudrate, "timeout": self.timeout_s,
-                                     "write_timeout": write_timeout, "do_not_open": True}
-        if not self.url.startswith(("socket://", "rfc2217://", "loop://")):
-            kwargs.update(rtscts=self.rtscts, xonxoff=self.xonxoff)
+        # network URLs have no flow control lines: leave pyserial's defaults there
+        local = not self.url.startswith(("socket://", "rfc2217://", "loop://"))
         try:
-            ser = serial.serial_for_url(self.url, **kwargs)
+            ser = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.timeout_s,
+                                        write_timeout=write_timeout, do_not_open=True,
+                                        rtscts=self.rtscts and local,
+                                        xonxoff=self.xonxoff and local)
             if hasattr(ser, "exclusive") and not self.url.startswith(("socket://", "rfc2217://",
                                                                      "loop://")):
                 ser.exclusive = True
@@ -165,7 +168,7 @@ class SerialTransport:
             ser.timeout = min(remaining, self.timeout_s)
             waiting = ser.in_waiting if hasattr(ser, "in_waiting") else 0
             chunk = ser.read(max(1, min(n, waiting)) if waiting else 1)
-        except (*_IO_ERRORS, TypeError) as exc:
+        except _READ_ERRORS as exc:
             self.close()
             raise TransportError(f"read failed (port vanished?): {exc}", device=self.device,
                                  port=self.url, command=command) from exc

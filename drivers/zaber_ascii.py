@@ -26,6 +26,7 @@ import time
 from dataclasses import dataclass
 
 from drivers.axis import Axis, AxisStatus, Identity
+from drivers.clock import Clock
 from drivers.config import AxisConfig, ControllerConfig
 from drivers.errors import (
     DeviceError,
@@ -421,8 +422,9 @@ def _flag_text(flags: tuple[str, ...]) -> tuple[str, ...]:
 class ZaberAxis(Axis):
     """One axis of one Zaber device (``config.address`` = device, ``config.axis`` = axis)."""
 
-    def __init__(self, config: AxisConfig, chain: ZaberChain, name: str | None = None) -> None:
-        super().__init__(config, name)
+    def __init__(self, config: AxisConfig, chain: ZaberChain, name: str | None = None, *,
+                 clock: Clock | None = None) -> None:
+        super().__init__(config, name, clock=clock)
         if config.units != "mm":
             raise DeviceError(f"Zaber driver supports linear stages in mm, not "
                               f"{config.units!r}", device=self.name, port=chain.url)
@@ -630,12 +632,13 @@ class ZaberAxis(Axis):
         )
 
 
-def make_axes(controller: ControllerConfig, time_scale: float = 1.0) -> list[ZaberAxis]:
+def make_axes(controller: ControllerConfig, time_scale: float = 1.0, *,
+              clock: Clock | None = None) -> list[ZaberAxis]:
     """One ``ZaberAxis`` per configured axis, all sharing one chain (one serial port)."""
     chain = ZaberChain(controller.port, name=controller.name,
                        baudrate=controller.baudrate or DEFAULT_BAUDRATE,
                        timeout_s=controller.reply_timeout_s)
-    return [ZaberAxis(ax.model_copy(update={"time_scale": time_scale}), chain)
+    return [ZaberAxis(ax.model_copy(update={"time_scale": time_scale}), chain, clock=clock)
             for ax in controller.axes]
 
 

@@ -1,7 +1,8 @@
 """Stand-ins for the hardware and the procedures, for the daemon/API/store tests.
 
-The daemon only needs a rig with ``identities``, ``stop_all()``, ``close()`` and ``truth``,
-and procedures with the signature ``(rig, cfg, *, progress, abort, recorder) -> result``.
+The daemon only needs a rig with ``identities``, ``axes``, ``stop_all()``, ``close()`` and
+``truth``, and procedures with the signature ``(rig, cfg, *, progress, abort, recorder,
+run_id) -> result`` (``alignd.daemon.Procedure``).
 These fakes record what the daemon did to them (stops, closes) so tests can assert it.
 Also used by ``run_fake_daemon`` in a subprocess (SIGTERM/SIGKILL tests).
 """
@@ -72,6 +73,8 @@ class FakeResult:
     U_um: float
     iterations: int
     reason: str = ""
+    config_error: bool = False
+    details: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict, "offset_um": list(self.offset_um),
@@ -87,7 +90,7 @@ def make_procedure(verdict: str = "aligned", *, steps: int = 5, iterations: int 
     iteration, optionally blocks on ``gate`` (until set or aborted), then returns."""
 
     def proc(rig: Any, cfg: Any, *, progress: Any, abort: threading.Event,
-             recorder: Any) -> FakeResult:
+             recorder: Any, run_id: str, commission: Any = None) -> FakeResult:
         offsets = [(800.0 / 4**i, -300.0 / 4**i) for i in range(iterations + 1)]
         for it in range(iterations):
             angles = np.linspace(-10, 10, steps)
@@ -196,7 +199,7 @@ def follow(client: Client, run_id: int) -> dict[str, Any]:
 
 
 def fill_disk(rig: Any, cfg: Any, *, progress: Any, abort: threading.Event,
-              recorder: Any) -> FakeResult:
+              recorder: Any, run_id: str, commission: Any = None) -> FakeResult:
     """A run that records incompressible 64 KiB frames until the disk is full (the store
     raises) or it is aborted."""
     from alignd.store import StoreError

@@ -14,8 +14,9 @@ from alignd.procedures import Rig, Tools
 from alignd.procedures.runout import RunoutMap
 from alignd.procedures.sweep import sweep_runout
 from alignd.procedures.tools import Corners, as_corners
+from alignd.simulated import build_direct_rig
 from drivers.camera import Frame
-from drivers.sim.direct import build_direct_rig, scene_tracker
+from drivers.sim.direct import scene_tracker
 from drivers.sim.world import World
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sim.yaml"

@@ -10,6 +10,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from scripted_serial import url_for
 
 from drivers.config import AxisConfig, ControllerConfig, FaultConfig, SoftLimits
 from drivers.errors import (
@@ -74,6 +75,9 @@ class ScriptSerial:
         self.written: list[bytes] = []
         self.timeout: float | None = 0.1
 
+    def open(self) -> None:
+        pass
+
     def write(self, data: bytes) -> int:
         self.written.append(bytes(data))
         assert self.script, f"unexpected write {data.hex(' ')}"
@@ -129,9 +133,9 @@ def axis_config(**kw: object) -> AxisConfig:
 
 
 def link_on(fake: ScriptSerial, timeout_s: float = 0.1) -> AptLink:
-    t = SerialTransport("fake://apt", device="translator", timeout_s=timeout_s)
-    t._ser = fake  # type: ignore[assignment]  # the real transport code, a fake port
-    return AptLink("fake://apt", device="translator", reply_timeout_s=timeout_s, transport=t)
+    url = url_for(fake, "apt", scheme="fake")  # the real transport code opens the fake
+    t = SerialTransport(url, device="translator", timeout_s=timeout_s)
+    return AptLink(url, device="translator", reply_timeout_s=timeout_s, transport=t)
 
 
 # Controller -> host replies, written out byte by byte from the protocol document.
@@ -579,12 +583,24 @@ def test_physics_for_mts25() -> None:
 
 
 # ---- driver against the emulator, in process (manual clock) --------------------------------
+class PollClock:
+    """The emulator's manual clock as the driver's: each poll is 50 ms of controller time."""
+
+    def __init__(self, clock: ManualClock) -> None:
+        self.clock = clock
+
+    def now(self) -> float:
+        return self.clock.now()
+
+    def sleep(self, dt: float) -> None:
+        self.clock.advance(0.05)
+
+
 def emulated_axis(start: float = 12.0) -> tuple[AptAxis, SimAxis, ManualClock, EmuSerial]:
     clock = ManualClock()
     emu, sim = kdc(clock, start=start)
     fake = EmuSerial(emu)
-    axis = AptAxis(axis_config(), link_on(fake))
-    axis._sleep = lambda dt: clock.advance(0.05)  # each poll is 50 ms of controller time
+    axis = AptAxis(axis_config(), link_on(fake), clock=PollClock(clock))
     return axis, sim, clock, fake
 
 
@@ -639,8 +655,7 @@ def test_driver_drives_a_k10cr1_in_degrees() -> None:
                       deadband=0.001, backlash_approach=0.5)
     sim = SimAxis("turntable", physics_for(cfg), clock, np.random.default_rng(0), start=7.0)
     fake = EmuSerial(AptEmulator("turntable", {1: sim}, clock))
-    axis = AptAxis(cfg, link_on(fake))
-    axis._sleep = lambda dt: clock.advance(0.05)
+    axis = AptAxis(cfg, link_on(fake), clock=PollClock(clock))
     with axis:
         assert axis.identify().model == "K10CR1" and axis.identify().stage == "K10CR1"
         axis.home()

@@ -18,11 +18,8 @@ class FakeAxis(Axis):
     """An Axis straight over a SimAxis; sleeping advances the manual clock."""
 
     def __init__(self, cfg: AxisConfig, sim: SimAxis, clock: ManualClock) -> None:
-        super().__init__(cfg)
+        super().__init__(cfg, clock=clock)
         self.sim = sim
-        self.clock = clock
-        self._sleep = clock.advance
-        self._now = clock.now
         self.sent: list[float] = []
         self.stops = 0
         self.offset_error = 0.0  # a controller that lands off target

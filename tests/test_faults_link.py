@@ -18,6 +18,7 @@ import pytest
 from faults_support import SIM_YAML, assert_end_state, sim_daemon, targets
 
 from alignd.config import load_config
+from drivers import registry
 from drivers.axis import Axis
 from drivers.config import FaultConfig, SimConfig
 from drivers.errors import DeviceTimeoutError, PortBusyError, ProtocolError, TransportError
@@ -28,8 +29,6 @@ from drivers.sim.server import EmulatorServer, FaultInjector
 CFG = load_config(SIM_YAML)
 CONTROLLERS = {c.name: c for c in CFG.controllers}
 ROLE = {"turntable": "turntable", "translator": "translator", "platform": "x"}
-DRIVERS = {"smc100": "drivers.newport_smc100", "apt": "drivers.thorlabs_apt",
-           "zaber": "drivers.zaber_ascii"}
 MOVE_COMMAND = {"smc100": "PA", "apt": "0x0453", "zaber": "move abs"}  # absolute moves
 
 
@@ -37,15 +36,13 @@ MOVE_COMMAND = {"smc100": "PA", "apt": "0x0453", "zaber": "move abs"}  # absolut
 def served(name: str, *, reply_timeout_s: float = 1.0, time_scale: float = 50.0,
            **axis_update: Any) -> Iterator[tuple[Axis, SimAxis, EmulatorServer]]:
     """One controller of the reference rig on its emulator, its driver connected and homed."""
-    import importlib
-
     ctl = CONTROLLERS[name]
     ctl = ctl.model_copy(update={"reply_timeout_s": reply_timeout_s, "axes": [
         a.model_copy(update=axis_update) for a in ctl.axes]})
     with SimRig([ctl], [], SimConfig(time_scale=time_scale, seed=5)) as rig:
         srv = rig.servers[name]
         live = ctl.model_copy(update={"port": srv.url})
-        axes = importlib.import_module(DRIVERS[ctl.protocol]).make_axes(live, time_scale)
+        axes = registry.make_axes(live, time_scale)
         axis = next(a for a in axes if a.config.role == ROLE[name])
         try:
             for a in axes:

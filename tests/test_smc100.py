@@ -14,6 +14,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from scripted_serial import url_for
 
 from drivers.config import AxisConfig, ControllerConfig, FaultConfig
 from drivers.errors import (
@@ -132,6 +133,8 @@ class ScriptedPort:
         self._rx = bytearray()
         self.timeout: float | None = 0.0
 
+    def open(self) -> None: ...
+
     @property
     def in_waiting(self) -> int:
         return len(self._rx)
@@ -159,12 +162,10 @@ class ScriptedPort:
 
 def scripted_axis(script: list[tuple[bytes, bytes]], timeout_s: float = 0.05,
                   **cfg: object) -> tuple[Smc100Axis, ScriptedPort]:
-    tr = SerialTransport("script://smc100", device="turntable", baudrate=57600,
-                         timeout_s=timeout_s, xonxoff=True)
     port = ScriptedPort(script)
-    tr._ser = port  # the transport's own open() is for real URLs
-    axis = Smc100Axis(axis_config(**cfg), tr)
-    axis._sleep = lambda s: None
+    tr = SerialTransport(url_for(port, "smc100"), device="turntable", baudrate=57600,
+                         timeout_s=timeout_s, xonxoff=True)
+    axis = Smc100Axis(axis_config(**cfg), tr, clock=ManualClock())  # polls do not wait
     return axis, port
 
 

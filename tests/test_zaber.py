@@ -434,20 +434,12 @@ def platform(url: str) -> ControllerConfig:
                                   for i, r in [(1, "x"), (2, "y"), (3, "z")]])
 
 
-def on_manual_clock(axes: list[ZaberAxis], clock: ManualClock) -> None:
-    """The driver's waits advance the emulator's clock instead of sleeping."""
-    for ax in axes:
-        ax._sleep = clock.advance
-        ax._now = clock.now
-
-
 @pytest.mark.parametrize("mode", ["pty", "tcp"])
 def test_driver_against_emulator_three_devices(mode: str) -> None:
     emu, clock, sim = make_chain(3)
     with EmulatorServer(emu, mode) as srv:
         assert [a.config.time_scale for a in make_axes(platform(srv.url), 4.0)] == [4.0] * 3
-        axes = make_axes(platform(srv.url))  # the manual clock is the driver's clock too
-        on_manual_clock(axes, clock)
+        axes = make_axes(platform(srv.url), clock=clock)  # the emulator's clock drives waits
         for a in axes:
             a.connect()
         assert axes[0].chain is axes[2].chain and axes[0].chain.is_open
@@ -480,8 +472,7 @@ def test_driver_against_emulator_three_devices(mode: str) -> None:
 def test_driver_detects_bad_checksum_resyncs_and_ignores_late_reply() -> None:
     emu, clock, _ = make_chain(3)
     with EmulatorServer(emu, "pty") as srv:
-        axes = make_axes(platform(srv.url))
-        on_manual_clock(axes, clock)
+        axes = make_axes(platform(srv.url), clock=clock)
         for a in axes:
             a.connect()
         chain = axes[0].chain
@@ -508,8 +499,7 @@ def test_driver_stall_and_limit_switch_end_in_errors_and_a_stopped_axis() -> Non
     with EmulatorServer(emu, "tcp") as srv:
         ctrl = platform(srv.url)
         ctrl = ctrl.model_copy(update={"axes": ctrl.axes[:1]})
-        (ax,) = make_axes(ctrl)
-        on_manual_clock([ax], clock)
+        (ax,) = make_axes(ctrl, clock=clock)
         with ax:
             ax.home()
             sim[1].inject_stall()
@@ -540,8 +530,7 @@ def test_wire_faults_end_in_the_documented_error_then_the_link_recovers(
     emu, clock, _ = make_chain(1)
     with EmulatorServer(emu, "pty") as srv:
         ctrl = platform(srv.url)
-        (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}))
-        on_manual_clock([ax], clock)
+        (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}), clock=clock)
         with ax:
             srv.faults = FaultInjector([FaultConfig(device="platform", kind=kind,
                                                     delay_s=0.2)], seed=3)
@@ -560,8 +549,7 @@ def test_disconnect_mid_move_is_a_transport_error(mode: str) -> None:
     fault = FaultConfig(device="platform", kind="disconnect", on="move abs")
     with EmulatorServer(emu, mode) as srv:
         ctrl = platform(srv.url)
-        (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}))
-        on_manual_clock([ax], clock)
+        (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}), clock=clock)
         ax.connect()
         ax.home()
         srv.faults = FaultInjector([fault])
@@ -580,8 +568,7 @@ def test_unreadable_reply_to_move_abs_is_sent_again_and_the_move_is_made(
     emu, clock, sim = make_chain(1)
     with EmulatorServer(emu, "tcp") as srv:
         ctrl = platform(srv.url)
-        (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}))
-        on_manual_clock([ax], clock)
+        (ax,) = make_axes(ctrl.model_copy(update={"axes": ctrl.axes[:1]}), clock=clock)
         ax.connect()
         ax.home()
         srv.faults = FaultInjector([FaultConfig(device="platform", kind=kind, on="move abs")])

@@ -123,13 +123,15 @@ def status_text(st: dict[str, Any]) -> str:
     for role in sorted(set(devices) | set(axes)):
         ident = devices.get(role)
         text = identity_text(ident) if isinstance(ident, dict) else "?"
-        ax = axes.get(role) if isinstance(axes.get(role), dict) else {}
+        got = axes.get(role)
+        ax: dict[str, Any] = got if isinstance(got, dict) else {}
         where = "position not read yet"
         if ax.get("position") is not None:
             where = _fmt_position(float(ax["position"]), str(ax.get("units") or ""))
             if ax.get("age_s") is not None:
                 where += f" (read {_fmt_age(float(ax['age_s']))} ago)"
-        homed = {True: "homed", False: "NOT homed"}.get(ax.get("homed"), "homed ?")
+        homed = {True: "homed", False: "NOT homed"}.get(bool(ax["homed"]), "homed ?") \
+            if isinstance(ax.get("homed"), bool) else "homed ?"
         lines.append(f"  {role:10s} {where:34s} {homed:9s}  {text}")
     for role, cam in sorted((st.get("cameras") or {}).items()):
         if isinstance(cam, dict):

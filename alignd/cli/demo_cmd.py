@@ -9,11 +9,14 @@ JSON), shows the history, and stops the daemon.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib.resources
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from alignd.cli import EXIT_FAULT, EXIT_USAGE
@@ -24,7 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add ``alignctl demo``."""
     p = sub.add_parser("demo", help="closed-loop alignment on the simulated rig, with a report",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", default="configs/sim.yaml", help="a simulated-rig config")
+    p.add_argument("--config", default=None, help="a simulated-rig config (default: the "
+                   "reference rig shipped with alignd, configs/sim.yaml)")
     p.add_argument("--out", default="out/demo", help="where the state, log and report go")
     p.add_argument("--seed", type=int, default=None, help="seed of the simulated world")
     p.set_defaults(func=cmd_demo)
@@ -41,12 +45,29 @@ def _wait_for_socket(path: Path, proc: subprocess.Popen, timeout_s: float) -> bo
     return False
 
 
+@contextlib.contextmanager
+def config_path(arg: str | None) -> Iterator[Path]:
+    """``--config``, else the reference simulated rig packaged with alignd (so the demo
+    works from any folder after ``pip install``)."""
+    if arg is not None:
+        yield Path(arg)
+        return
+    with importlib.resources.as_file(
+            importlib.resources.files("alignd") / "data" / "sim.yaml") as path:
+        yield path
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
+    with config_path(args.config) as path:
+        return _demo(args, path)
+
+
+def _demo(args: argparse.Namespace, config: Path) -> int:
     from alignd.cli import daemon_cmds
 
-    cfg = load_config(args.config)  # a bad config fails here, before anything starts
+    cfg = load_config(config)  # a bad config fails here, before anything starts
     if cfg.sim is None:
-        print(f"alignctl: error: {args.config} is not a simulated-rig config (no 'sim:')",
+        print(f"alignctl: error: {config} is not a simulated-rig config (no 'sim:')",
               file=sys.stderr)
         return EXIT_USAGE
     out = Path(args.out).resolve()
@@ -54,7 +75,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     sock = out / "alignd.sock"
     sock.unlink(missing_ok=True)
     log_path = out / "alignd.log"
-    cmd = [sys.executable, "-m", "alignd.daemon", "--config", str(Path(args.config).resolve()),
+    cmd = [sys.executable, "-m", "alignd.daemon", "--config", str(config.resolve()),
            "--socket", str(sock), "--state-dir", str(out / "state"), "-v"]
     if args.seed is not None:
         cmd += ["--seed", str(args.seed)]

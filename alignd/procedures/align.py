@@ -36,9 +36,9 @@ from alignd.procedures.angles import AngleMap
 from alignd.procedures.calibrate import Calibration, calibrate, configured_pixel_size_um
 from alignd.procedures.commission import CommissionRecord
 from alignd.procedures.decision import Decision, decide
-from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progress
+from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_progress
 from alignd.procedures.recorder import NullRecorder, RunRecorder
-from alignd.procedures.result import RunResult
+from alignd.procedures.result import RunResult, Verdict
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
 from alignd.procedures.runout import RunoutMap
 from alignd.procedures.sweep import CentrePool, Measurement, SweepPlan, grab_fresh, measure
@@ -64,7 +64,8 @@ MAX_CENTRE_JUMPS = 2  # a centre that jumps once may be a bump; twice, something
 class _Stop(AligndError):
     """Ends the loop with a verdict that is not an error (refusal, not converged)."""
 
-    def __init__(self, verdict: str, reason: str, measurement: Measurement | None = None):
+    def __init__(self, verdict: Verdict, reason: str,
+                 measurement: Measurement | None = None) -> None:
         super().__init__(reason)
         self.verdict = verdict
         self.reason = reason
@@ -131,7 +132,7 @@ class _Run:
         self.abort = abort
         self.recorder = recorder or NullRecorder()
         self.tools = tools
-        self.run_id = run_id or getattr(recorder, "run_id", None) or uuid.uuid4().hex[:12]
+        self.run_id = run_id or uuid.uuid4().hex[:12]
         self.st = _State()
         self.p = cfg.procedure
         self.tol = self.p.tolerance_um
@@ -157,7 +158,8 @@ class _Run:
     # ---- top level -------------------------------------------------------------------
     def execute(self) -> RunResult:
         t_start = time.time()
-        verdict, reason, config_error = "fault", "", False
+        verdict: Verdict = "fault"
+        reason, config_error = "", False
         final: Measurement | None = None
         try:
             with self.rig.abort_guard(self.abort):
@@ -195,8 +197,7 @@ class _Run:
         if final is None and verdict in ("not_converged", "out_of_tolerance"):
             final = self.st.last
         result = RunResult(
-            run_id=self.run_id, mode=self.mode, verdict=verdict,  # type: ignore[arg-type]
-            reason=reason,
+            run_id=self.run_id, mode=self.mode, verdict=verdict, reason=reason,
             offset_um=None if final is None else (float(final.offset_um[0]),
                                                   float(final.offset_um[1])),
             U_um=None if final is None else final.U_um,
@@ -236,7 +237,7 @@ class _Run:
         return result
 
     # ---- helpers ---------------------------------------------------------------------
-    def _emit(self, phase: str, message: str, *, m: Measurement | None = None,
+    def _emit(self, phase: Phase, message: str, *, m: Measurement | None = None,
               iteration: int | None = None) -> None:
         ev = ProgressEvent(phase, message, iteration=iteration,
                            offset_um=None if m is None else (float(m.offset_um[0]),
@@ -375,7 +376,7 @@ class _Run:
     def _prechecks(self) -> None:
         pc = self.p.precheck
         assert self.tools is not None
-        problems: list[tuple[str, str]] = []  # (verdict if refused, message)
+        problems: list[tuple[Verdict, str]] = []  # (verdict if refused, message)
         top = self.rig.camera("top")
         assert top is not None
         self._emit("precheck", "looking for the holder")
@@ -417,7 +418,7 @@ class _Run:
                 raise _Stop(verdict, f"pre-check refused: {msg}")
             self._warn(f"pre-check: {msg}")
 
-    def _check(self) -> tuple[str, str, Measurement]:
+    def _check(self) -> tuple[Verdict, str, Measurement]:
         while True:
             m = self._measure("check")
             if m.sigma_centre_um > self.p.max_center_sigma_um:
@@ -452,7 +453,7 @@ class _Run:
         self.st.calibration = cal
         return cal
 
-    def _align(self) -> tuple[str, str, Measurement]:
+    def _align(self) -> tuple[Verdict, str, Measurement]:
         cal = self._calibrate()
         rep = self.p.stage_repeatability_um
         m = self._measure("align")

@@ -33,6 +33,7 @@ import math
 import threading
 import time
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol, runtime_checkable
 
@@ -48,7 +49,7 @@ from alignd.procedures.angles import (
     holder_image_angles,
 )
 from alignd.procedures.calibrate import configured_pixel_size_um
-from alignd.procedures.events import ProgressCallback, ProgressEvent, no_progress
+from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_progress
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
 from alignd.procedures.runout import RunoutMap, fit_runout
@@ -247,8 +248,10 @@ class CommissionRecord:
 
 def run_commission(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
                    abort: threading.Event | None = None, recorder: RunRecorder | None = None,
-                   tools: Tools | None = None, run_id: str | None = None) -> CommissionRecord:
-    """Measure the rig's conventions (see the module docstring); never raises for the rig."""
+                   tools: Tools | None = None, run_id: str | None = None,
+                   commission: CommissionRecord | None = None) -> CommissionRecord:
+    """Measure the rig's conventions (see the module docstring); never raises for the rig.
+    ``commission`` (a previous record) is not used: commissioning measures afresh."""
     return _Commission(rig, cfg, progress, abort, recorder, tools, run_id).execute()
 
 
@@ -285,7 +288,7 @@ class _Commission:
         self.axis_px: np.ndarray = np.full(2, np.nan)
 
     # ---- plumbing --------------------------------------------------------------------
-    def _emit(self, phase: str, message: str, step: int | None = None,
+    def _emit(self, phase: Phase, message: str, step: int | None = None,
               total: int | None = None) -> None:
         try:
             self.progress(ProgressEvent(phase, message, step=step, total=total))
@@ -563,7 +566,7 @@ class _Commission:
                 value=worst, unit="deg", expected=f"<= {MAX_TURN_DISAGREE_DEG}",
                 name="" if ok else "stages not on the table"))
 
-    def _roles_findings(self, roles: list[str]) -> None:
+    def _roles_findings(self, roles: Sequence[str]) -> None:
         """Which config role moves which way in the holder frame; swapped / inverted."""
         tu, tv = self.cfg.holder.target_mm
         tn = math.hypot(tu, tv) or 1.0

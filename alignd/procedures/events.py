@@ -9,17 +9,20 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Literal, get_args
 
-PHASES = ("connect", "home", "precheck", "calibrate", "sweep", "solve", "move", "verify",
-          "done")
+Phase = Literal["connect", "home", "precheck", "calibrate", "sweep", "solve", "move", "verify",
+                "done",
+                # commissioning's steps
+                "top", "axes", "turntable"]
+PHASES: tuple[Phase, ...] = get_args(Phase)
 
 
 @dataclass(frozen=True)
 class ProgressEvent:
     """One progress report. Fields that do not apply are None."""
 
-    phase: str
+    phase: Phase
     message: str
     step: int | None = None  # e.g. sweep frame 5 ...
     total: int | None = None  # ... of 21

@@ -13,12 +13,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 Verdict = Literal["aligned", "within_tolerance", "out_of_tolerance", "not_converged",
                   "aborted", "fault"]
-VERDICTS: tuple[str, ...] = ("aligned", "within_tolerance", "out_of_tolerance",
-                             "not_converged", "aborted", "fault")
+VERDICTS: tuple[Verdict, ...] = get_args(Verdict)
 
 # contract: exit codes. 0 ok / within tolerance, 1 out of tolerance or not converged
 # (an aborted run did not reach its goal either), 2 usage or config error, 3 fault.

@@ -18,6 +18,7 @@ from alignd.errors import AligndError, ConfigError, StateError
 from alignd.textfmt import identity_text
 from drivers.axis import Axis, Identity
 from drivers.camera import Camera
+from drivers.errors import Cancelled
 
 log = logging.getLogger(__name__)
 
@@ -26,8 +27,20 @@ class AbortRequested(AligndError):
     """Raised inside a procedure when the operator's abort event is set."""
 
 
+class AbortEvent(threading.Event):
+    """An abort flag that carries its reason (the daemon's; the procedures report it)."""
+
+    reason: str | None = None
+
+    def request(self, reason: str) -> None:
+        if not self.is_set():
+            self.reason = reason
+            self.set()
+
+
 def abort_reason(abort: threading.Event | None) -> str:
-    """The reason an abort event carries (the daemon may attach one), or a default."""
+    """The reason an abort event carries (an ``AbortEvent``'s, or one a caller attached to
+    a plain ``threading.Event``), or a default."""
     reason = getattr(abort, "reason", None)
     return str(reason) if reason else "abort requested"
 
@@ -131,28 +144,19 @@ class Rig:
     def abort_guard(self, abort: threading.Event | None) -> Iterator[None]:
         """Make a set ``abort`` interrupt a move in progress, not just between moves.
 
-        ``Axis.wait_until_stopped`` polls through the axis' ``_sleep``; wrapping it lets the
-        abort raise ``AbortRequested`` from inside a blocking ``move_to``. The caller stops
-        the axes.
+        Every axis waits with ``abort`` as its cancel event (``Axis.cancel_on``); a wait it
+        ends raises ``AbortRequested`` here. The caller stops the axes.
         """
         if abort is None:
             yield
             return
-        saved = {}
-        for role, ax in self.axes.items():
-            orig = ax._sleep
-            saved[role] = orig
-
-            def guarded(dt: float, _orig: Callable[[float], Any] = orig) -> None:
-                check_abort(abort)
-                _orig(dt)
-
-            ax._sleep = guarded
-        try:
-            yield
-        finally:
-            for role, orig in saved.items():
-                self.axes[role]._sleep = orig
+        with contextlib.ExitStack() as stack:
+            for ax in self.axes.values():
+                stack.enter_context(ax.cancel_on(abort))
+            try:
+                yield
+            except Cancelled as exc:
+                raise AbortRequested(abort_reason(abort)) from exc
 
 
 def validate_rig(rig: Rig, correction_axes: tuple[str, ...], need_side: bool = False) -> None:

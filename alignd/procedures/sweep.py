@@ -16,7 +16,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
@@ -32,6 +32,9 @@ from alignd.procedures.runout import RunoutMap
 from alignd.procedures.tools import Tools
 from drivers.camera import Camera, Frame
 from drivers.errors import CameraError
+
+if TYPE_CHECKING:
+    from alignd.solve.result import CentreResult
 
 log = logging.getLogger(__name__)
 
@@ -341,9 +344,9 @@ class CentrePool:
     """
 
     def __init__(self) -> None:
-        self.items: list[tuple[np.ndarray, np.ndarray, Any]] = []
+        self.items: list[tuple[np.ndarray, np.ndarray, CentreResult]] = []
 
-    def add(self, res: Any) -> tuple[PooledCentre, str]:
+    def add(self, res: CentreResult) -> tuple[PooledCentre, str]:
         """Add a sweep's centre; returns the pooled centre and a warning ('' if none)."""
         c = np.asarray(res.center_px, float)
         cov = np.asarray(res.cov_px2, float)
@@ -567,7 +570,7 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
         centre_px=c, cov_centre_px2=cov_c, offset_px=off, cov_offset_px2=cov_off,
         scale_px_per_mm=s, offset_um=off_mm * 1000.0, cov_offset_um2=cov_um,
         yaw_deg=yaw_deg, sigma_centre_um=sigma_c,
-        rms_residual_px=float(getattr(centre, "rms_residual_px", float("nan"))),
+        rms_residual_px=float(centre.rms_residual_px),
         n_frames=len(data.readback_deg), n_tracked=n,
         inliers=int(getattr(centre, "inliers", n * 4)),
         outliers=int(getattr(centre, "outliers", 0)), budget=budget,
@@ -674,7 +677,7 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
         raise SolveError(f"{kind} sweep {iteration}: centre solve failed: {exc}") from exc
     t1 = time.perf_counter()
     warning = ""
-    used: Any = centre
+    used: CentreResult | PooledCentre = centre
     if pool is not None:
         # pool in the camera's own image frame: each sweep's rectifier differs a little
         # (it depends on where the holder is), the axis' image point does not

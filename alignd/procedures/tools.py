@@ -9,11 +9,14 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from drivers.camera import Frame
+
+if TYPE_CHECKING:  # the solver is imported by default_tools, when it is used
+    from alignd.solve.result import CentreResult
 
 log = logging.getLogger(__name__)
 
@@ -48,8 +51,25 @@ class SideInfo:
     pole_x_px: float
 
 
+class Detection(Protocol):
+    """What a holder tracker reports: ``alignd.vision.HolderDetection`` or the simulator's
+    ``SceneDetection`` (read-only attributes)."""
+
+    @property
+    def ok(self) -> bool: ...
+
+    @property
+    def corners_px(self) -> np.ndarray: ...
+
+    @property
+    def quality(self) -> float: ...
+
+    @property
+    def reason(self) -> str: ...
+
+
 TrackFn = Callable[[Frame], Corners]
-SolveFn = Callable[[np.ndarray, np.ndarray, float | None], Any]  # angles, points, px -> result
+SolveFn = Callable[[np.ndarray, np.ndarray, float | None], "CentreResult"]  # angles, points, px
 ScalarFn = Callable[[Frame], float]
 
 
@@ -68,18 +88,15 @@ class Tools:
     side: Callable[[Frame], SideInfo] | None = None
 
 
-def as_corners(det: Any) -> Corners:
-    """Normalise a vision ``HolderDetection`` (or anything with ``corners_px``/``ok``)."""
-    ok = bool(getattr(det, "ok", True))
-    corners = getattr(det, "corners_px", None)
-    if corners is None:
-        return Corners(np.full((4, 2), np.nan), False, 0.0, "no corners")
-    c = np.asarray(corners, float).reshape(-1, 2)
+def as_corners(det: Detection) -> Corners:
+    """Normalise a holder detection; corners that are not four finite points are not ok."""
+    ok = bool(det.ok)
+    c = np.asarray(det.corners_px, float).reshape(-1, 2)
     if c.shape != (4, 2) or not np.all(np.isfinite(c)):
         ok = False
-    quality = float(getattr(det, "quality", 1.0) or 0.0)
+    quality = float(det.quality or 0.0)
     return Corners(c if c.shape == (4, 2) else np.full((4, 2), np.nan), ok, quality,
-                   str(getattr(det, "reason", "") or ""))
+                   str(det.reason or ""))
 
 
 def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
@@ -91,29 +108,21 @@ def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
         from alignd import vision
     except ImportError as exc:
         raise StateError(f"alignd.vision cannot be imported: {exc}") from exc
-    missing = [n for n in ("track_holder", "measure_tilt", "fit_rim") if not hasattr(vision, n)]
-    if missing or not hasattr(solver, "solve_centre"):
-        raise StateError("measuring functions missing: "
-                         + ", ".join([f"alignd.vision.{n}" for n in missing]
-                                     + ([] if hasattr(solver, "solve_centre")
-                                        else ["alignd.solve.solve_centre"])))
 
     def track(frame: Frame) -> Corners:
-        kwargs: dict[str, Any] = {}
-        return as_corners(vision.track_holder(frame.gray, **kwargs))
+        return as_corners(vision.track_holder(frame.gray))
 
-    def solve(angles: np.ndarray, points: np.ndarray, pixel_size_um: float | None) -> Any:
+    def solve(angles: np.ndarray, points: np.ndarray,
+              pixel_size_um: float | None) -> CentreResult:
         sweep = solver.Sweep(angles_deg=np.asarray(angles, float),
                              points=np.asarray(points, float), pixel_size_um=pixel_size_um)
         return solver.solve_centre(sweep, method="auto")
 
     def tilt(frame: Frame) -> float:
-        res = vision.measure_tilt(frame.gray)
-        return float(getattr(res, "tilt_deg", res))
+        return float(vision.measure_tilt(frame.gray).tilt_deg)
 
     def eccentricity(frame: Frame) -> float:
-        res = vision.fit_rim(frame.gray)
-        return float(getattr(res, "eccentricity", res))
+        return float(vision.fit_rim(frame.gray).eccentricity)
 
     def rim(frame: Frame, radius_mm: float | None, height_mm: float | None) -> RimInfo:
         res = vision.fit_rim(frame.gray, radius_mm, height_mm)

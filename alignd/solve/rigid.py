@@ -273,6 +273,7 @@ def fit_rigid(inp: SolveInputs, estimate_angles: bool) -> CentreResult:
         _solve_known(Px, Py, vf * huber_weights(nrm, sigma), a0, st)
         if np.hypot(*(st.c - c_old)) < 1e-2 * max(sigma, 1e-6):
             break
+    r: tuple[np.ndarray, np.ndarray] | None
     if estimate_angles:
         known = _State(st.c, st.q, st.a)
         nrm, _ = _norms(Px, Py, st)

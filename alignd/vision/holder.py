@@ -304,7 +304,7 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
     edge_ok = []
     frac = []
     for i, (ln, _pts) in enumerate(sides):
-        span = np.linalg.norm(corners[(i + 1) % 4] - corners[i])
+        span = float(np.linalg.norm(corners[(i + 1) % 4] - corners[i]))
         expected = max(span - 20.0, 1.0) * 0.7  # columns/rows crossed, at most
         if ln is None:
             edge_ok.append(False)

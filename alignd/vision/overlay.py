@@ -33,7 +33,7 @@ def to_bgr(image: np.ndarray) -> np.ndarray:
     return img[:, :, :3].copy()
 
 
-def _fx(p: Sequence[float]) -> tuple[int, int]:
+def _fx(p: Sequence[float] | np.ndarray) -> tuple[int, int]:
     return round(p[0] * _ONE), round(p[1] * _ONE)
 
 
@@ -62,9 +62,9 @@ def draw_centre(image: np.ndarray, center_px: Sequence[float], cov_px2: np.ndarr
     out = to_bgr(image)
     c = np.asarray(center_px, float)
     h, w = out.shape[:2]
-    for p, d in bisectors:
-        p = np.asarray(p, float)
-        d = np.asarray(d, float)
+    for p_in, d_in in bisectors:
+        p = np.asarray(p_in, float)
+        d = np.asarray(d_in, float)
         d = d / (np.linalg.norm(d) or 1.0)
         L = float(w + h)
         cv2.line(out, _fx(p - L * d), _fx(p + L * d), (160, 160, 160), 1, cv2.LINE_AA, _SHIFT)

@@ -104,7 +104,7 @@ def fit_ellipse(xy: np.ndarray) -> np.ndarray:
         raise VisionError("points do not lie on an ellipse")
     a1 = v[:, idx[0]]
     a2 = T @ a1
-    A, B, C, D, E, F = (*a1, *a2)
+    A, B, C, D, E, F = np.concatenate([a1, a2])
     # undo scaling: x = (X - mx)/sc
     s2 = sc * sc
     A2, B2, C2 = A / s2, B / s2, C / s2

@@ -113,12 +113,12 @@ def find_vertical_edges(image: np.ndarray, *, min_contrast: float = 15.0,
         c = coarse_edge(gray, p0, p1, search_px=6, margin_px=2.0, min_step=min_contrast / 2)
         if c is None:
             continue
-        ln = _refine(gray, c, h, min_contrast, min_rows, end_trim_rows)
-        if ln is not None:  # second pass: windows re-centred on the first fit
-            ln = _refine(gray, ln[0], h, min_contrast, min_rows, end_trim_rows)
-        if ln is None:
+        found = _refine(gray, c, h, min_contrast, min_rows, end_trim_rows)
+        if found is not None:  # second pass: windows re-centred on the first fit
+            found = _refine(gray, found[0], h, min_contrast, min_rows, end_trim_rows)
+        if found is None:
             continue
-        ln, pts = ln
+        ln, pts = found
         a, sa = _angle_of(ln)
         rows = (int(pts.xy[:, 1].min()) - end_trim_rows, int(pts.xy[:, 1].max()) + end_trim_rows)
         ymid = (rows[0] + rows[1]) / 2

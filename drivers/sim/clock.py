@@ -4,13 +4,10 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Protocol
 
+from drivers.clock import Clock
 
-class Clock(Protocol):
-    def now(self) -> float:
-        """Simulated seconds since the clock started."""
-        ...
+__all__ = ["Clock", "ManualClock", "ScaledClock"]
 
 
 class ScaledClock:
@@ -24,6 +21,10 @@ class ScaledClock:
 
     def now(self) -> float:
         return (time.monotonic() - self._t0) * self.scale
+
+    def sleep(self, dt: float) -> None:
+        """Sleep ``dt`` simulated seconds (``dt / scale`` of wall time)."""
+        time.sleep(dt / self.scale)
 
 
 class ManualClock:
@@ -42,3 +43,7 @@ class ManualClock:
             raise ValueError("time does not run backwards")
         with self._lock:
             self._t += dt
+
+    def sleep(self, dt: float) -> None:
+        """Waiting on a manual clock advances it: a polling loop never blocks."""
+        self.advance(dt)

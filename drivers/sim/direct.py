@@ -6,14 +6,11 @@ benchmark run on this direct rig: same world, same kinematics (trapezoidal profi
 backlash, repeatability, encoder counts), no serial round trips. With a ``ManualClock`` the
 axes advance simulated time instead of sleeping, so a run is fast and deterministic.
 
-``build_direct_rig`` returns an ``alignd.procedures.Rig`` (imported inside the function:
-``drivers`` does not depend on ``alignd`` at import time).
+``alignd.simulated.build_direct_rig`` wraps these parts in a procedures ``Rig``.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import importlib
 import logging
 import threading
 import time
@@ -25,21 +22,18 @@ import numpy as np
 
 from drivers.axis import Axis, AxisStatus, Identity
 from drivers.camera import Camera, Frame
+from drivers.clock import SYSTEM_CLOCK
 from drivers.config import AxisConfig, CameraConfig, ControllerConfig, SimConfig
-from drivers.errors import DeviceTimeoutError, TransportError
-from drivers.sim.clock import Clock, ManualClock
-from drivers.sim.kinematics import AxisPhysics, SimAxis
+from drivers.errors import TransportError
+from drivers.sim.clock import Clock, ManualClock, ScaledClock
+from drivers.sim.kinematics import SimAxis
+from drivers.sim.rig import physics_for
 from drivers.sim.world import World
 
 if TYPE_CHECKING:
-    from alignd.config import AligndConfig
-    from alignd.procedures.rig import Rig
+    from drivers.sim.render import RenderOptions
 
 log = logging.getLogger(__name__)
-
-_EMULATOR_MODULES = {"smc100": "drivers.sim.smc100_emu", "apt": "drivers.sim.apt_emu",
-                     "zaber": "drivers.sim.zaber_emu"}
-
 
 class DirectSimAxis(Axis):
     """An ``Axis`` over a ``SimAxis``: statuses from its flags, no protocol in between.
@@ -51,15 +45,15 @@ class DirectSimAxis(Axis):
 
     def __init__(self, config: AxisConfig, sim: SimAxis, clock: Clock,
                  name: str | None = None, serial: str | None = None) -> None:
-        super().__init__(config, name)
+        # the axis waits on a manual clock itself; under a scaled clock it polls in wall
+        # time (the config's time_scale shortens its timeouts)
+        super().__init__(config, name,
+                         clock=clock if isinstance(clock, ManualClock) else SYSTEM_CLOCK)
         self.sim = sim
-        self.clock = clock
+        self.sim_clock = clock
         self.serial = serial or f"SIM-{config.role.upper()}"
         self.connected = False
         self.lock = threading.RLock()
-        if isinstance(clock, ManualClock):
-            self._sleep = clock.advance
-            self._now = clock.now
 
     @property
     def port(self) -> str:
@@ -87,19 +81,15 @@ class DirectSimAxis(Axis):
         self._require("home")
         with self.lock:
             self.sim.home()
-        deadline = self._now() + self.config.home_timeout_s / max(self.config.time_scale, 1e-9)
-        while True:
+
+        def homed() -> bool:
             with self.lock:
                 moving = self.sim.moving  # refreshes the model: sets homed on arrival
-                done = self.sim.homed and not moving
-            if done:
-                break
-            if self._now() > deadline:
-                self.stop()
-                raise DeviceTimeoutError(f"homing did not finish within "
-                                         f"{self.config.home_timeout_s:g} s",
-                                         device=self.name, port=self.port, command="home")
-            self._sleep(self.config.poll_interval_s)
+                return self.sim.homed and not moving
+
+        self.poll_until(homed, self.config.home_timeout_s / max(self.config.time_scale, 1e-9),
+                        command="home", timeout_message=f"homing did not finish within "
+                        f"{self.config.home_timeout_s:g} s")
         self.position_known = True
 
     def _start_move(self, target: float) -> None:
@@ -174,13 +164,15 @@ class SceneCamera(Camera):
 
 @dataclass
 class SceneDetection:
-    """Duck-typed like ``alignd.vision.HolderDetection`` (corners_px, ok, quality)."""
+    """A detection with the fields of ``alignd.vision.HolderDetection`` the procedures read
+    (``alignd.procedures.tools.Detection``)."""
 
     corners_px: np.ndarray
     ok: bool = True
     quality: float = 1.0
     center_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
     angle_deg: float = 0.0
+    reason: str = ""
 
 
 def scene_tracker(sigma_px: float, rng: np.random.Generator,
@@ -198,18 +190,6 @@ def scene_tracker(sigma_px: float, rng: np.random.Generator,
 
 
 # ---- the rig ---------------------------------------------------------------------------
-def physics_for(protocol: str, axis: AxisConfig, sim: SimConfig) -> AxisPhysics:
-    """The stage's mechanics as its emulator models them, imperfections from the world."""
-    module = importlib.import_module(_EMULATOR_MODULES[protocol])
-    phys: AxisPhysics = module.physics_for(axis)
-    w = sim.world
-    if axis.units == "deg":
-        return dataclasses.replace(phys, backlash=w.turntable_backlash_deg,
-                                   repeatability=max(phys.repeatability, 0.0))
-    return dataclasses.replace(phys, backlash=w.backlash_mm,
-                               repeatability=w.stage_repeatability_um / 1000.0)
-
-
 @dataclass
 class DirectParts:
     """What ``build_direct_axes`` makes: axes by role, the world, cameras, the clock."""
@@ -224,7 +204,7 @@ class DirectParts:
 def build_direct_axes(controllers: list[ControllerConfig], cameras: list[CameraConfig],
                       sim: SimConfig, seed: int, *, clock: Clock | None = None,
                       homed: bool = True, camera_kind: Literal["render", "scene"] = "render",
-                      render_opts: Any = None) -> DirectParts:
+                      render_opts: RenderOptions | None = None) -> DirectParts:
     """Simulated axes and cameras for a controller/camera config, seeded.
 
     ``homed=True`` models an instrument referenced since power-on, its linear stages at
@@ -232,7 +212,7 @@ def build_direct_axes(controllers: list[ControllerConfig], cameras: list[CameraC
     near there, unreferenced, like ``SimRig``.
     """
     clock = clock or ManualClock()
-    scale = 1.0 if isinstance(clock, ManualClock) else float(getattr(clock, "scale", 1.0))
+    scale = clock.scale if isinstance(clock, ScaledClock) else 1.0
     rng = np.random.default_rng(seed)
     streams = rng.spawn(4)
     sim_axes: dict[str, SimAxis] = {}
@@ -263,26 +243,5 @@ def build_direct_axes(controllers: list[ControllerConfig], cameras: list[CameraC
     return DirectParts(axes, sim_axes, world, cams, clock)
 
 
-def build_direct_rig(cfg: AligndConfig, seed: int | None = None, *,
-                     clock: Clock | None = None, homed: bool = True,
-                     camera_kind: Literal["render", "scene"] = "render",
-                     render_opts: Any = None) -> tuple[Rig, World]:
-    """A procedures ``Rig`` over direct simulated axes for an instrument config.
-
-    ``seed`` defaults to ``cfg.sim.seed``; ``clock`` to a ``ManualClock`` (fast and
-    deterministic; pass ``ScaledClock(cfg.sim.time_scale)`` for wall-clock pacing).
-    """
-    from alignd.procedures.rig import Rig  # the one upward reference, kept out of import time
-
-    sim = cfg.sim or SimConfig()
-    parts = build_direct_axes(list(cfg.controllers), list(cfg.cameras), sim,
-                              sim.seed if seed is None else seed, clock=clock, homed=homed,
-                              camera_kind=camera_kind, render_opts=render_opts)
-    rig = Rig(axes=dict(parts.axes), cameras=parts.cameras, truth=parts.world.truth,
-              name=f"{cfg.name} (direct sim, seed {sim.seed if seed is None else seed})")
-    rig.sim_parts = parts  # type: ignore[attr-defined]
-    return rig, parts.world
-
-
 __all__ = ["DirectParts", "DirectSimAxis", "SceneCamera", "SceneDetection",
-           "build_direct_axes", "build_direct_rig", "physics_for", "scene_tracker"]
+           "build_direct_axes", "physics_for", "scene_tracker"]

@@ -437,7 +437,7 @@ def render_top(scene: TopScene, camera: PinholeCamera, opts: RenderOptions | Non
         c_s = _coverage(sample, ras, region).astype(np.float64)
         ground = img[y0:y1, x0:x1].astype(np.float64)
         if opts.cast_shadow_depth > 0:
-            mask = np.zeros((y1 - y0, x1 - x0), np.float32)
+            mask: np.ndarray = np.zeros((y1 - y0, x1 - x0), np.float32)
             ox, oy = opts.cast_shadow_offset_px
             for poly in (geo["holder"], geo["sample"]):
                 p = ras.distort(poly) + np.array([ox - x0, oy - y0])

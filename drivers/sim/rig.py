@@ -7,14 +7,13 @@ Built from the same controller/camera config the instrument uses; a controller w
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import logging
 import threading
 from typing import TYPE_CHECKING, Literal, Self
 
 import numpy as np
 
-from drivers import stages
+from drivers import registry, stages
 from drivers.config import AxisConfig, CameraConfig, ControllerConfig, SimConfig
 from drivers.sim.clock import Clock, ScaledClock
 from drivers.sim.emulator import Emulator, TargetLog
@@ -27,17 +26,17 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-# protocol -> (module, emulator class); each module also has physics_for(AxisConfig)
-EMULATORS = {
-    "smc100": ("drivers.sim.smc100_emu", "Smc100Emulator"),
-    "apt": ("drivers.sim.apt_emu", "AptEmulator"),
-    "zaber": ("drivers.sim.zaber_emu", "ZaberEmulator"),
-}
+def _simulated(protocol: str) -> tuple[registry.EmulatorFactory, registry.PhysicsFactory]:
+    """A protocol's emulator and physics from the registry (an error if it has none)."""
+    proto = registry.get(protocol)
+    if proto.emulator is None or proto.physics is None:
+        raise ValueError(f"protocol {protocol!r} has no emulator: it cannot be 'port: sim'")
+    return proto.emulator(), proto.physics()
 
 
-def _physics(protocol: str, axis: AxisConfig, sim: SimConfig) -> AxisPhysics:
-    module = importlib.import_module(EMULATORS[protocol][0])
-    phys: AxisPhysics = module.physics_for(axis)
+def physics_for(protocol: str, axis: AxisConfig, sim: SimConfig) -> AxisPhysics:
+    """The stage's mechanics as its emulator models them, imperfections from the world."""
+    phys = _simulated(protocol)[1](axis)
     w = sim.world
     if axis.units == "deg":
         return dataclasses.replace(phys, backlash=w.turntable_backlash_deg)
@@ -74,10 +73,10 @@ class SimRig:
         for ctl in controllers:
             if ctl.port != "sim":
                 continue
-            mod_name, cls_name = EMULATORS[ctl.protocol]
+            emulator, _ = _simulated(ctl.protocol)
             by_address: dict[int, SimAxis] = {}
             for ax in ctl.axes:
-                phys = _physics(ctl.protocol, ax, sim)
+                phys = physics_for(ctl.protocol, ax, sim)
                 # power-on: somewhere near mid-travel, not referenced
                 mid = (phys.travel_min + phys.travel_max) / 2
                 if ax.units == "deg":
@@ -86,9 +85,8 @@ class SimRig:
                 sim_axis = SimAxis(ax.role, phys, self.clock, streams[1], start=start)
                 by_address[ax.address] = sim_axis
                 self.axes[ax.role] = sim_axis
-            cls = getattr(importlib.import_module(mod_name), cls_name)
-            self.emulators[ctl.name] = cls(ctl.name, by_address, self.clock,
-                                           **_identity_kwargs(ctl))
+            self.emulators[ctl.name] = emulator(ctl.name, by_address, self.clock,
+                                                **_identity_kwargs(ctl))
         self.world = World(sim.world, self.axes, streams[2])
         self.lock = threading.Lock()
         self.camera_configs = {c.role: c for c in cameras if c.source == "sim"}

@@ -258,8 +258,8 @@ class EmulatorServer:
         self.disconnected = True
         self._close_all()
 
-    def _read_fds(self) -> list[object]:
-        fds: list[object] = []
+    def _read_fds(self) -> list[socket.socket | int]:
+        fds: list[socket.socket | int] = []
         if self._listener is not None and self._client is None:
             fds.append(self._listener)
         if self._client is not None:

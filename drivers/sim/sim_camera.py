@@ -49,7 +49,7 @@ class SimCamera(Camera):
             if self.role == "top":
                 scene = self.world.top_scene()
                 img = render.render_top(scene, self.world.top_camera, self.opts, self.rng)
-                meta = {"turntable_deg_true": scene.turntable_deg}
+                meta: dict[str, object] = {"turntable_deg_true": scene.turntable_deg}
             else:
                 img = render.render_side(self.world.side_scene(), self.opts, self.rng)
                 meta = {}

@@ -1,0 +1,63 @@
+"""The simulated rig, for alignd: the one module that reaches into ``drivers.sim``.
+
+``open_sim_rig`` starts what a ``port: sim`` / ``source: sim`` config asks for (emulators on
+loopback ports, rendered cameras); ``alignd.hardware.open_rig`` calls it. ``build_direct_rig``
+wraps direct simulated axes (no bytes) in a procedures ``Rig`` for the closed-loop tests and
+benchmark. Runtime code outside this module never imports the simulator (an import-linter
+contract in ``make test`` holds it to that).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
+
+from alignd.config import AligndConfig
+from alignd.procedures.rig import Rig
+from drivers.config import SimConfig
+from drivers.sim.clock import Clock
+from drivers.sim.direct import DirectParts, build_direct_axes
+from drivers.sim.rig import SimRig
+from drivers.sim.world import World
+
+if TYPE_CHECKING:  # the renderer loads when a camera renders
+    from drivers.sim.render import RenderOptions
+
+__all__ = ["DirectRig", "SimRig", "build_direct_rig", "open_sim_rig"]
+
+
+def open_sim_rig(cfg: AligndConfig, *, seed: int | None = None,
+                 transport: Literal["tcp", "pty", "both"] | None = None) -> SimRig:
+    """Start the emulators and cameras of every ``sim`` device of ``cfg`` (it has a ``sim:``
+    section: the config checks that)."""
+    if cfg.sim is None:
+        raise ValueError("the config has no 'sim:' section")
+    sim_rig = SimRig(cfg.controllers, cfg.cameras, cfg.sim, seed=seed, transport=transport)
+    return sim_rig.start()
+
+
+@dataclass
+class DirectRig(Rig):
+    """A procedures ``Rig`` over direct simulated axes; ``sim_parts`` lets a test reach the
+    models (inject a stall, read the targets a stage received)."""
+
+    sim_parts: DirectParts | None = None
+
+
+def build_direct_rig(cfg: AligndConfig, seed: int | None = None, *,
+                     clock: Clock | None = None, homed: bool = True,
+                     camera_kind: Literal["render", "scene"] = "render",
+                     render_opts: RenderOptions | None = None) -> tuple[DirectRig, World]:
+    """A procedures ``Rig`` over direct simulated axes for an instrument config.
+
+    ``seed`` defaults to ``cfg.sim.seed``; ``clock`` to a ``ManualClock`` (fast and
+    deterministic; pass ``ScaledClock(cfg.sim.time_scale)`` for wall-clock pacing).
+    """
+    sim = cfg.sim or SimConfig()
+    used_seed = sim.seed if seed is None else seed
+    parts = build_direct_axes(list(cfg.controllers), list(cfg.cameras), sim, used_seed,
+                              clock=clock, homed=homed, camera_kind=camera_kind,
+                              render_opts=render_opts)
+    rig = DirectRig(axes=dict(parts.axes), cameras=parts.cameras, truth=parts.world.truth,
+                    name=f"{cfg.name} (direct sim, seed {used_seed})", sim_parts=parts)
+    return rig, parts.world
