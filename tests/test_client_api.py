@@ -38,8 +38,13 @@ def test_check_align_progress_status_history() -> None:
         assert check.verdict in ("within_tolerance", "out_of_tolerance")
         assert events[0].type == "state" and events[-1].type == "end"
         assert events[-1].verdict == check.verdict
-        steps = [e.step for e in events if e.type == "progress" and e.step is not None]
-        assert steps == sorted(steps) and len(steps) >= 5  # the sweep, in order
+        sweeps: list[list[int]] = []
+        for e in events:  # a check may take more than one sweep (measuring better)
+            if e.type == "progress" and e.phase == "sweep" and e.step is not None:
+                if e.step == 1 or not sweeps:
+                    sweeps.append([])
+                sweeps[-1].append(e.step)
+        assert sweeps and all(s == sorted(s) and len(s) >= 5 for s in sweeps)  # in order
         run_id = client.align(wait=False)
         assert run_id == 2 and client.status()["run_id"] == 2
         with pytest.raises(ApiError) as busy:
