@@ -513,7 +513,7 @@ def draw_convergence(run: dict[str, Any], width: int = WIDTH - PLOT_H, height: i
         tw = cv2.getTextSize(txt, FONT, 0.42, 1)[0][0]
         cv2.putText(img, txt, (px_x(i) - tw // 2, y1 + 16), FONT, 0.42, (0, 0, 0), 1,
                     cv2.LINE_AA)
-    cv2.putText(img, "iteration (v: verify)", ((x0 + x1) // 2 - 70, height - 8), FONT, 0.42,
+    cv2.putText(img, "sweep (v: verify)", ((x0 + x1) // 2 - 60, height - 8), FONT, 0.42,
                 (0, 0, 0), 1, cv2.LINE_AA)
     labels.reserve((0, y1 + 1, width, height))
     if tol:
@@ -610,7 +610,7 @@ def draw_header(run: dict[str, Any], width: int = WIDTH) -> np.ndarray:
     bits.append(f"alignd {run.get('software_version', '?')}, config "
                 f"{str(run.get('config_hash', ''))[:12]}")
     _text(img, ", ".join(bits[:2]), (10, 48), 0.45)
-    _text(img, "; ".join(bits[2:]) + (f"; {run['reason']}" if run.get("reason") else ""),
+    _text(img, "; ".join(bits[2:]),  # the reason: the notes at the bottom
           (10, 64), 0.42, (200, 200, 200))
     return img
 
