@@ -25,7 +25,7 @@ import numpy as np
 from alignd.errors import VisionError
 
 __all__ = ["EdgePoints", "Line", "area_crossings", "as_gray", "check_usable", "coarse_edge",
-           "edge_points", "fit_line", "intersect"]
+           "edge_points", "fit_line", "intersect", "sensor_full_scale"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -36,7 +36,23 @@ def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
     if img.ndim != 2 or img.shape[0] < 16 or img.shape[1] < 16:
         raise VisionError(f"{what}: expected a 2-D (grey) or BGR image of at least 16 x 16 px, "
                           f"got shape {np.asarray(image).shape}")
+    if img.dtype == np.uint16:
+        # 10/12/14-bit cameras deliver 16-bit words, LSB- or MSB-aligned: express levels in
+        # 8-bit DN of the sensor's own full scale so thresholds mean the same everywhere
+        return img.astype(np.float32) * np.float32(255.0 / sensor_full_scale(img))
     return img.astype(np.float32)
+
+
+def sensor_full_scale(img: np.ndarray) -> float:
+    """Full scale of a 16-bit image: 2^bits - 1 for the smallest of 8, 10, 12, 14 or 16
+    bits holding its maximum, on the sensor's native grid (MSB-aligned words, whose low
+    bits are all zero, count as 16 bit)."""
+    a = np.asarray(img)
+    top = int(a.max()) if a.size else 0
+    for bits in (8, 10, 12, 14):
+        if top <= (1 << bits) - 1:
+            return float((1 << bits) - 1)
+    return 65535.0
 
 
 def check_usable(gray: np.ndarray, min_contrast: float, what: str = "image",
