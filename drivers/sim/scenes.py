@@ -550,7 +550,7 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     pole_ang = float(rng.uniform(-0.3, 0.3)) + roll
     tilt = float(rng.uniform(-0.5, 0.5))
     samp_ang = pole_ang + tilt
-    wp = float(rng.uniform(8, 40))
+    wp = float(rng.uniform(14, 50))  # the area method needs ~12 px between two edges
     ws = float(rng.uniform(max(3 * wp, 60), 350))
     gap = float(rng.uniform(2 * wp + 20, 350))
     total = wp + gap + ws
@@ -570,8 +570,8 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
                 return v
         return ref + lo if ref < 128 else ref - lo
 
-    pole_lv = level_vs(bg)
-    samp_lv = level_vs(bg)
+    pole_lv = level_vs(bg, 60)
+    samp_lv = level_vs(bg, 60)
     img = np.full((h, w), bg, np.float32) + _texture(rng, (h, w), rng.uniform(50, 300),
                                                      rng.uniform(0, 5))
     ras = Raster(size_px, 1.0, (0.0, 0.0), 0.0)
@@ -631,8 +631,8 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     params.update(info)
     img *= light
     blur = float(rng.uniform(0.4, 1.5))
-    out = _finish(img, rng, blur=blur, read_noise=float(rng.uniform(0.5, 2.5)),
-                  electrons_per_dn=float(rng.uniform(20, 80)), enc=enc)
+    out = _finish(img, rng, blur=blur, read_noise=float(rng.uniform(0.5, 2.0)),
+                  electrons_per_dn=float(rng.uniform(40, 150)), enc=enc)
     ta = math.tan(math.radians(samp_ang))
     x_left_mid = float(slab[0, 0] - (y_mid - y_top) * ta)
     xs = (x_left_mid, x_left_mid + ws)
