@@ -259,7 +259,7 @@ class _Run:
             self.recorder.event(f"{role}: {ident.vendor} {ident.model} s/n {ident.serial} "
                                 f"fw {ident.firmware}")
         if self.tools is None:
-            self.tools = default_tools()
+            self.tools = default_tools(self.cfg)
         # before anything moves: a sweep the soft limits forbid is a config error
         tt = self.rig.axis("turntable").config.soft_limits
         if not (tt.min <= -self.p.sweep_deg and self.p.sweep_deg <= tt.max):

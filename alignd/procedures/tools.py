@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from alignd.config import AligndConfig
 from drivers.camera import Frame
 
 log = logging.getLogger(__name__)
@@ -46,6 +47,19 @@ class Tools:
     names: dict[str, str] | None = None
 
 
+def expected_holder_px(cfg: AligndConfig) -> tuple[float, float] | None:
+    """The holder's long and short side in top-camera px, from ``holder.size_mm`` and the
+    top camera's ``pixel_size_um`` (None when the pixel size is not configured)."""
+    cam = cfg.camera("top")
+    px = cam.pixel_size_um if cam is not None else None
+    if px is None and cfg.sim is not None:
+        px = cfg.sim.world.pixel_size_um
+    if px is None:
+        return None
+    a, b = cfg.holder.size_mm
+    return (max(a, b) * 1000.0 / px, min(a, b) * 1000.0 / px)
+
+
 def as_corners(det: Any) -> Corners:
     """Normalise a vision ``HolderDetection`` (or anything with ``corners_px``/``ok``)."""
     ok = bool(getattr(det, "ok", True))
@@ -60,10 +74,16 @@ def as_corners(det: Any) -> Corners:
                    str(getattr(det, "reason", "") or ""))
 
 
-def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
-    """The real vision and solver (imported here, so the procedures load without them)."""
+def default_tools(cfg: AligndConfig | None = None) -> Tools:
+    """The real vision and solver (imported here, so the procedures load without them).
+
+    With a config the tracker knows the holder's size in px (``holder.size_mm`` and the top
+    camera's ``pixel_size_um``: a target of another size is never taken for the holder)
+    and seeds each frame's search with the previous frame's corners; the side camera's
+    regions of interest come from ``side_camera``.
+    """
     from alignd import solve as solver
-    from alignd.errors import StateError
+    from alignd.errors import StateError, VisionError
 
     try:
         from alignd import vision
@@ -75,10 +95,20 @@ def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
                          + ", ".join([f"alignd.vision.{n}" for n in missing]
                                      + ([] if hasattr(solver, "solve_centre")
                                         else ["alignd.solve.solve_centre"])))
+    expected = expected_holder_px(cfg) if cfg is not None else None
+    side = cfg.side_camera if cfg is not None else None
+    last: list[np.ndarray] = []  # the previous frame's corners (tracking seed)
 
     def track(frame: Frame) -> Corners:
-        kwargs: dict[str, Any] = {}
-        return as_corners(vision.track_holder(frame.gray, **kwargs))
+        hint = last[0] if last else None
+        try:
+            det = vision.track_holder(frame.gray, expected_size_px=expected, hint=hint)
+        except VisionError as exc:
+            return Corners(np.full((4, 2), np.nan), False, 0.0, str(exc))
+        out = as_corners(det)
+        if out.ok:
+            last[:] = [out.corners_px]
+        return out
 
     def solve(angles: np.ndarray, points: np.ndarray, pixel_size_um: float | None) -> Any:
         sweep = solver.Sweep(angles_deg=np.asarray(angles, float),
@@ -86,7 +116,9 @@ def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
         return solver.solve_centre(sweep, method="auto")
 
     def tilt(frame: Frame) -> float:
-        res = vision.measure_tilt(frame.gray)
+        res = vision.measure_tilt(frame.gray,
+                                  pole_roi_px=side.pole_roi_px if side else None,
+                                  sample_roi_px=side.sample_roi_px if side else None)
         return float(getattr(res, "tilt_deg", res))
 
     def eccentricity(frame: Frame) -> float:
