@@ -673,7 +673,7 @@ def random_rim_scene(rng: np.random.Generator, category: str | None = None,
                                                         rng.uniform(0, 6))
     disc_map = disc + _texture(rng, (h, w), rng.uniform(2, 30), rng.uniform(0.5, 3))
     _paint(img, Conic(ellipse_conic(c, a, b, ang)), ras, disc_map)
-    occluded = cat == "occluded" or rng.random() < 0.4
+    occluded = cat == "occluded" or (cat != "clear" and rng.random() < 0.4)
     params: dict[str, object] = {"dark_disc": dark, "occluded": occluded}
     if occluded:
         # a holder overlapping the rim, cables across it, a shadow
