@@ -48,6 +48,7 @@ __all__ = ["HolderDetection", "YawMeasurement", "measure_yaw", "order_corners", 
 log = logging.getLogger(__name__)
 
 _DOWN = 4
+_HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 
 
 @dataclass(frozen=True)
@@ -398,7 +399,7 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
                 corners[2] - corners[0]):
             break  # a line went astray: keep the previous corners and flag below
         corners = new
-        sides = _fit_sides(gray, corners, 5, 10.0, min_contrast, lens)
+        sides = _fit_sides(gray, corners, _HALF_WIDTH, 10.0, min_contrast, lens)
         lines = [s[0] for s in sides]
         lines_ideal = True
     pol = _polarity(gray, corners)

@@ -463,11 +463,23 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
         params["cast_shadow"] = {"offset_px": (float(dx), float(dy)), "depth": cast_depth}
     # holder and sample (exact coverage)
     hold_map = hold + _texture(rng, (h, w), rng.uniform(2, 40), rng.uniform(0.3, 2.0))
-    _paint(img, Polygon(holder), ras, hold_map)
-    if sample is not None:
+    if sample is None:
+        _paint(img, Polygon(holder), ras, hold_map)
+    else:
+        # one composite for both: painting them in turn would let the ground show
+        # through their shared side (each covers part of those pixels)
         lv = (float(rng.uniform(hold + 30, 250)) if pol == "dark" and hold + 30 < 250 else
               float(rng.uniform(5, max(hold - 30, 6))))
-        _paint(img, Polygon(sample), ras, lv)
+        hp, sp = Polygon(holder), Polygon(sample)
+        b1, b2 = hp.bbox(ras), sp.bbox(ras)
+        region = (max(0, math.floor(min(b1[0], b2[0]))), max(0, math.floor(min(b1[1], b2[1]))),
+                  min(w, math.ceil(max(b1[2], b2[2])) + 1),
+                  min(h, math.ceil(max(b1[3], b2[3])) + 1))
+        x0, y0, x1, y1 = region
+        ch, cs = coverage(hp, ras, region), coverage(sp, ras, region)
+        sub = img[y0:y1, x0:x1]
+        img[y0:y1, x0:x1] = (sub * np.clip(1.0 - ch - cs, 0.0, 1.0)
+                             + hold_map[y0:y1, x0:x1] * ch + np.float32(lv) * cs)
     if distract:
         _holder_furniture(rng, img, holder, Lp, Sp, angle, hold, params)
         params["cables"] = _draw_cables(rng, img, int(rng.integers(1, 4)), keep_out=[hull_px],
