@@ -38,9 +38,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from alignd.errors import VisionError  # noqa: E402
 from alignd.vision.holder import measure_yaw, order_corners, track_holder  # noqa: E402
+from alignd.vision.lens import Lens  # noqa: E402
 from alignd.vision.rim import camera_zenith_from_eccentricity, fit_rim  # noqa: E402
 from alignd.vision.side import baseline_tilt, measure_tilt  # noqa: E402
-from alignd.vision.lens import Lens  # noqa: E402
 from drivers.config import SimWorldConfig  # noqa: E402
 from drivers.sim.render import (  # noqa: E402
     PartialShadow,

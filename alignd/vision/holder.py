@@ -234,7 +234,7 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
         ok = (cx >= 0) & (cx < sw) & (cy >= 0) & (cy < sh)
         acc += np.bincount(cy[ok] * sw + cx[ok], minlength=sh * sw)
     A = cv2.GaussianBlur(acc.reshape(sh, sw).astype(np.float32), (0, 0), 1.2)
-    peaks_mask = (A >= cv2.dilate(A, np.ones((5, 5), np.uint8))) & (A > 0.25 * A.max())
+    peaks_mask = (cv2.dilate(A, np.ones((5, 5), np.uint8)) <= A) & (0.25 * A.max() < A)
     py, px = np.nonzero(peaks_mask)
     order = np.argsort(-A[py, px])[:max_peaks]
     theta_px = np.degrees(np.arctan2(ny, nx)) % 90.0

@@ -14,6 +14,7 @@ Canny + Hough angle (0.01 deg accumulator bins) is kept as :func:`baseline_tilt`
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, replace
 
@@ -35,7 +36,8 @@ SIGN_CONVENTION = ("angles in deg from the image vertical, positive when the lin
                    "toward +x (clockwise on screen, the top camera's x-toward-y sense); "
                    "tilt = sample - pole")
 
-__all__ = ["SIGN_CONVENTION", "SideEdge", "SideMeasurement", "baseline_tilt", "find_vertical_edges", "measure_tilt"]
+__all__ = ["SIGN_CONVENTION", "SideEdge", "SideMeasurement", "baseline_tilt",
+           "find_vertical_edges", "measure_tilt"]
 
 
 @dataclass(frozen=True)
@@ -212,7 +214,7 @@ def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
     """The rod: the narrowest pair of x-adjacent edges of opposite polarity."""
     best: tuple[float, list[SideEdge]] | None = None
     srt = sorted(edges, key=lambda e: e.x_mid_px)
-    for a, b in zip(srt, srt[1:], strict=False):
+    for a, b in itertools.pairwise(srt):
         d = b.x_mid_px - a.x_mid_px
         if a.contrast * b.contrast < 0 and d <= max_width_px and abs(
                 a.angle_deg - b.angle_deg) < 0.5 and (best is None or d < best[0]):

@@ -41,9 +41,18 @@ import numpy as np
 
 from drivers.sim.render import Conic, Polygon, Raster, coverage
 
-__all__ = ["RimSceneSample", "SideSceneSample", "TopSceneSample", "TOP_CATEGORIES",
-           "SIDE_CATEGORIES", "RIM_CATEGORIES", "random_rim_scene", "random_side_scene",
-           "random_top_scene", "ellipse_conic"]
+__all__ = [
+    "RIM_CATEGORIES",
+    "SIDE_CATEGORIES",
+    "TOP_CATEGORIES",
+    "RimSceneSample",
+    "SideSceneSample",
+    "TopSceneSample",
+    "ellipse_conic",
+    "random_rim_scene",
+    "random_side_scene",
+    "random_top_scene",
+]
 
 TopCategory = Literal["plain", "distractors", "shadows", "optics", "jpeg", "12-bit", "everything"]
 TOP_CATEGORIES: tuple[TopCategory, ...] = ("plain", "distractors", "shadows", "optics", "jpeg",
@@ -456,7 +465,7 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
         dx, dy = rng.uniform(-18, 18, 2)
         blur = float(rng.uniform(2, 10))
         mask = np.zeros((h, w), np.float32)
-        pts = np.round((hull_px + [dx, dy]) * 16).astype(np.int32)
+        pts = np.round((hull_px + np.array([dx, dy])) * 16).astype(np.int32)
         cv2.fillConvexPoly(mask, pts, 1.0, lineType=cv2.LINE_AA, shift=4)
         mask = cv2.GaussianBlur(mask, (0, 0), blur)
         img *= 1.0 - np.float32(cast_depth) * mask
@@ -605,7 +614,7 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
         y_top = float(rng.uniform(0.03, 0.25) * h)
         y_bot = float(y_top + rng.uniform(0.55, 0.97 - y_top / h) * h)
         y_bot = min(y_bot, h - 40.0)
-        rows = (int(math.ceil(y_top)), int(math.floor(y_bot)))
+        rows = (math.ceil(y_top), math.floor(y_bot))
     y_mid = (max(y_top, 0) + min(y_bot, h - 1)) / 2
     s_left = min(s_near, s_far)
     # x of the sample's left edge at y_mid: the edges are parallel, leaning by samp_ang
