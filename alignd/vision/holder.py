@@ -195,16 +195,20 @@ def _noise_sigma(img: np.ndarray) -> float:
     return float(np.median(np.abs(lap[2:-2, 2:-2]))) * 1.4826 / math.sqrt(20.0) + 1e-3
 
 
+_SHIFTS = np.stack(np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)), -1).reshape(-1, 2).astype(float)
+
+
 def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
-                     min_contrast: float, max_peaks: int = 6
+                     min_contrast: float, max_peaks: int = 12
                      ) -> list[tuple[float, np.ndarray, str]]:
     """Rectangles of the expected size found by centre voting, threshold-ladder free.
 
-    At 1/4 scale every significant gradient pixel (beyond 4 noise sigma and half the
-    minimum contrast) votes for the centres a rectangle of the expected size would have:
-    half the short and half the long side away along its gradient, both ways. The
-    holder's long sides vote along its long midline and its short sides along the short
-    one, so its centre is where the two cross; edges of anything else scatter. At each
+    At 1/4 scale every significant gradient pixel (beyond 4 noise sigma and twice the
+    minimum contrast, thinned by non-maximum suppression) that has a partner edge a whole
+    side (short or long) away along its gradient, with the opposite gradient, votes for
+    the midpoint: the holder's long sides vote along its long midline and its short sides
+    along the short one, so its centre is where the two cross; edges of anything else
+    scatter or do not pair. At each
     peak the side directions are the dominant gradient orientation (mod 90 deg) around it,
     and the long side is the assignment whose outline has the stronger gradient.
     """
@@ -228,11 +232,20 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
     nx, ny = gx[ys, xs] / m, gy[ys, xs] / m
     eL, eS = max(expected_size_px) / _DOWN, min(expected_size_px) / _DOWN
     acc = np.zeros(sh * sw, np.float64)
+    near_edge = cv2.dilate(edges, np.ones((3, 3), np.uint8)) > 0
     for d in (eS / 2, eL / 2, -eS / 2, -eL / 2):
-        cx = np.rint(xs + d * nx).astype(np.int64)
-        cy = np.rint(ys + d * ny).astype(np.int64)
-        ok = (cx >= 0) & (cx < sw) & (cy >= 0) & (cy < sh)
-        acc += np.bincount(cy[ok] * sw + cx[ok], minlength=sh * sw)
+        # only where the opposite side is there too: an edge a whole side away, its
+        # gradient the other way (a circle, a single edge or another size does not pair)
+        qx = np.rint(xs + 2 * d * nx).astype(np.int64)
+        qy = np.rint(ys + 2 * d * ny).astype(np.int64)
+        ok = (qx >= 0) & (qx < sw) & (qy >= 0) & (qy < sh)
+        ok[ok] &= near_edge[qy[ok], qx[ok]]
+        qgx, qgy = gx[qy[ok], qx[ok]], gy[qy[ok], qx[ok]]
+        opposite = (qgx * nx[ok] + qgy * ny[ok]) < -0.7 * np.hypot(qgx, qgy)
+        ok[ok] = opposite
+        cx = np.rint(xs[ok] + d * nx[ok]).astype(np.int64)
+        cy = np.rint(ys[ok] + d * ny[ok]).astype(np.int64)
+        acc += np.bincount(cy * sw + cx, minlength=sh * sw)
     A = cv2.GaussianBlur(acc.reshape(sh, sw).astype(np.float32), (0, 0), 1.2)
     peaks_mask = (cv2.dilate(A, np.ones((5, 5), np.uint8)) <= A) & (0.25 * A.max() < A)
     py, px = np.nonzero(peaks_mask)
@@ -253,36 +266,47 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
         sel = np.abs(dt) < 3.0
         if sel.any():
             t0 += float(np.average(dt[sel], weights=m[near][sel]))
+        # the box of the expected size there, its long side either way, nudged by up to
+        # 3 px (1/4 scale) to where its outline has the strongest gradient: a peak made by
+        # something else (a disc's rim votes a small ring) has no such outline
         best = None
         for ang in (t0, t0 + 90.0):  # direction of the long side
             box = cv2.boxPoints(((c[0], c[1]), (eL, eS), ang)).astype(float)
-            sup = _outline_support(gx, gy, box)
-            if best is None or sup > best[0]:
-                best = (sup, box)
+            sup = _outline_support(gx, gy, box, _SHIFTS)
+            j = int(np.argmax(sup))
+            if best is None or sup[j] > best[0]:
+                best = (float(sup[j]), box + _SHIFTS[j])
         assert best is not None
         full = (best[1] + 0.5) * _DOWN - 0.5
-        out.append((float(A[py[k], px[k]]) * best[0], full, "?"))
+        out.append((best[0], full, "?"))
     out.sort(key=lambda t: -t[0])
     return out
 
 
-def _outline_support(gx: np.ndarray, gy: np.ndarray, box: np.ndarray) -> float:
-    """Mean |gradient . normal| along the middle 80 % of a box's sides."""
-    vals = []
+def _outline_support(gx: np.ndarray, gy: np.ndarray, box: np.ndarray,
+                     shifts: np.ndarray | None = None) -> np.ndarray:
+    """For each shift (K, 2) of a box: mean |gradient . normal| along the middle 80 % of
+    its sides, times the square root of (weakest side / strongest side)."""
+    if shifts is None:
+        shifts = np.zeros((1, 2))
     ctr = box.mean(axis=0)
+    t = np.linspace(0.1, 0.9, 24)[:, None]
+    pts, nrm = [], []
     for i in range(4):
         p0, p1 = box[i], box[(i + 1) % 4]
-        t = np.linspace(0.1, 0.9, 24)[:, None]
-        pts = (p0 + t * (p1 - p0)).astype(np.float32)
         d = p1 - p0
         n = np.array([-d[1], d[0]]) / (np.linalg.norm(d) or 1.0)
         if np.dot((p0 + p1) / 2 - ctr, n) < 0:
             n = -n
-        mx, my = pts[:, 0].reshape(1, -1), pts[:, 1].reshape(1, -1)
-        ax = cv2.remap(gx, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        ay = cv2.remap(gy, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        vals.append(float(np.mean(np.abs(ax * n[0] + ay * n[1]))))
-    return float(np.mean(vals)) * (min(vals) / (max(vals) + 1e-9)) ** 0.5
+        pts.append(p0 + t * d)
+        nrm.append(np.repeat(n[None], len(t), axis=0))
+    P = np.concatenate(pts)  # (96, 2)
+    N = np.concatenate(nrm)
+    Q = (shifts[:, None, :] + P[None]).astype(np.float32)  # (K, 96, 2)
+    ax = cv2.remap(gx, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    ay = cv2.remap(gy, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    v = np.abs(ax * N[None, :, 0] + ay * N[None, :, 1]).reshape(len(shifts), 4, -1).mean(axis=2)
+    return v.mean(axis=1) * np.sqrt(v.min(axis=1) / (v.max(axis=1) + 1e-9))
 
 
 def _fit_sides(gray: np.ndarray, corners: np.ndarray, half_width: int, margin: float,
