@@ -58,11 +58,14 @@ def sensor_full_scale(img: np.ndarray) -> float:
 def check_usable(gray: np.ndarray, min_contrast: float, what: str = "image",
                  full_scale: float = 255.0) -> None:
     """Raise VisionError for a blank (featureless) or mostly saturated image."""
-    lo, hi = np.percentile(gray[::4, ::4], [1, 99])
+    sub = gray[::8, ::8].ravel()
+    k1, k99 = int(0.01 * (sub.size - 1)), int(0.99 * (sub.size - 1))
+    part = np.partition(sub, (k1, k99))
+    lo, hi = float(part[k1]), float(part[k99])
     if hi - lo < min_contrast:
         raise VisionError(f"{what}: blank image (1-99 % intensity range {hi - lo:.1f} DN "
                           f"< {min_contrast:.0f} DN); no target can be found")
-    sat = float(np.mean(gray[::4, ::4] >= full_scale - 0.5))
+    sat = float(np.mean(sub >= full_scale - 0.5))
     if sat > 0.5:
         raise VisionError(f"{what}: {100 * sat:.0f} % of the image is saturated; "
                           "reduce exposure or light")
