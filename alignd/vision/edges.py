@@ -230,8 +230,11 @@ def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: boo
     # a column that clips a corner or a neighbouring edge shows a partial step
     raw = E - S
     if good.any():
+        # against the contrast of the neighbouring columns (+-15), so that a shadow or
+        # vignetting that changes the contrast along the edge is followed
         med = float(_median(raw[good]))
-        good &= np.abs(raw - med) <= 0.2 * abs(med) + 3.0
+        ref = _moving_mean(np.where(good, raw, med), 15)
+        good &= np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
     denom = Sj - Ej
     denom = np.where(good[:, None] & (np.abs(denom) > 1e-6), denom, 1.0)
     frac = (P - Ej) / denom

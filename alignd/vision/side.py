@@ -182,7 +182,9 @@ def _combine(edges: list[SideEdge]) -> tuple[float, float]:
 
 
 def _length(e: SideEdge) -> int:
-    return e.rows[1] - e.rows[0]
+    """Rows the edge was measured in (not its span: a fit through pieces of several
+    collinear edges spans far but uses few rows)."""
+    return e.line.n_used
 
 
 def _shifted(e: SideEdge, dx: int, dy: int) -> SideEdge:
