@@ -250,7 +250,7 @@ def corpus_top(n: int, seed: int) -> tuple[list[Row], dict[str, float]]:
     """n randomised top scenes, the categories in turn: found, wrong, corner RMS, time."""
     rng = np.random.default_rng(seed)
     per: dict[str, dict[str, list[float]]] = {}
-    groups = {"uncompressed": [], "JPEG q >= 80": [], "JPEG q < 80": []}  # type: dict[str, list[float]]
+    groups: dict[str, list[float]] = {"uncompressed": [], "JPEG q >= 80": [], "JPEG q < 80": []}
     times: list[float] = []
     track_t: list[float] = []
     misses: list[str] = []

@@ -380,6 +380,8 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
     disc_mode = str(rng.choice(["brighter", "darker", "absent"], p=[0.45, 0.3, 0.25]))
     cast = shadows and rng.random() < 0.7
     cast_depth = float(rng.uniform(0.1, 0.4)) if cast else 0.0
+    floor, disc, hold = 200.0, 150.0, 40.0  # (replaced by the first levels that fit)
+    pol: Literal["dark", "light"] = "dark"
     for _ in range(1000):
         floor = float(rng.uniform(25, 225))
         disc = floor
