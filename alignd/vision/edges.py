@@ -117,6 +117,7 @@ class EdgePoints:
 
 
 def _moving_mean(v: np.ndarray, k: int) -> np.ndarray:
+    k = min(k, (v.size - 1) // 2)  # np.convolve's "same" is max(len) long
     if v.size == 0 or k <= 0:
         return v
     ker = np.ones(2 * k + 1)

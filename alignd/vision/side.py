@@ -241,7 +241,8 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
                  sample_roi_px: tuple[int, int, int, int] | None = None,
                  pole_x_px: float | None = None, sample_x_px: float | None = None,
                  min_contrast: float = 15.0, pole_min_fraction: float = 0.97,
-                 max_pole_width_px: float | None = None) -> SideMeasurement:
+                 max_pole_width_px: float | None = None, max_edge_rms_px: float = 0.35
+                 ) -> SideMeasurement:
     """Sample angle, pole angle and tilt from one side-camera frame.
 
     With regions of interest (``pole_roi_px``, ``sample_roi_px``: x0, y0, x1, y1 in px,
@@ -303,8 +304,12 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
                                         for p in pole)]
         if sample_x_px is not None:
             rest = [e for e in rest if abs(e.x_mid_px - sample_x_px) < 150]
+        # a straight edge fits to hundredths of a pixel; a fit through the sample's edge
+        # and a nearly collinear holder edge below it does not, and would bias the tilt
+        rest = [e for e in rest if e.line.rms_px <= max_edge_rms_px]
         if not rest:
-            raise VisionError("side image: sample edge not found (no edge besides the pole)")
+            raise VisionError("side image: sample edge not found (no straight edge besides "
+                              "the pole)")
         longest = max(_length(e) for e in rest)
         if longest < 0.25 * h:
             raise VisionError(f"side image: sample edge not found (the longest edge besides "
