@@ -359,8 +359,12 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
                  h / 2 - 0.5 + float(rng.uniform(-20, 20)))
     ras = Raster(size_px, focal, principal, k1)
     sample_th = float(rng.uniform(3, 10)) * 1000 / px_um if rng.random() < 0.5 else 0.0
-    half = math.hypot(Lp, Sp + 2 * sample_th) / 2
     margin = 25.0
+    room = math.sqrt(max((h - 2 * margin - 2) ** 2 - Lp ** 2, 0.0))  # for Sp + 2 * sample
+    sample_th = min(sample_th, (room - Sp) / 2)
+    if sample_th < 8.0:
+        sample_th = 0.0  # no room for a sample plate in this frame
+    half = math.hypot(Lp, Sp + 2 * sample_th) / 2
     ctr = np.array([rng.uniform(margin + half, w - margin - half),
                     rng.uniform(margin + half, h - margin - half)])
     holder = _rect(ctr, Lp, Sp, angle)
