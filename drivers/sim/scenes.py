@@ -361,7 +361,9 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
     sample_th = float(rng.uniform(3, 10)) * 1000 / px_um if rng.random() < 0.5 else 0.0
     margin = 25.0
     room = math.sqrt(max((h - 2 * margin - 2) ** 2 - Lp ** 2, 0.0))  # for Sp + 2 * sample
-    sample_th = min(sample_th, (room - Sp) / 2)
+    # a plate as wide as the holder's short side would be a second holder-sized
+    # rectangle: the plate is at most half of it
+    sample_th = min(sample_th, (room - Sp) / 2, 0.5 * Sp)
     if sample_th < 8.0:
         sample_th = 0.0  # no room for a sample plate in this frame
     half = math.hypot(Lp, Sp + 2 * sample_th) / 2
