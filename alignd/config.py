@@ -41,6 +41,30 @@ class HolderConfig(Strict):
     target_mm: tuple[float, float] = (0.0, -25.0)
 
 
+class SideCameraConfig(Strict):
+    """Where the side camera sees its targets (px, x0, y0, x1, y1; x1/y1 exclusive).
+
+    Leave both unset for the automatic mode (the pole is the narrow bar running through
+    the image height, the sample edge the nearest other long straight edge); set them when
+    the scene has other long edges (a holder, a platform, a background frame) or the pole
+    is not the narrowest bar. Angles are from the image vertical, positive when a line's
+    top leans toward +x (clockwise on screen, as the top camera's angles); tilt = sample -
+    pole.
+    """
+
+    pole_roi_px: tuple[int, int, int, int] | None = None
+    sample_roi_px: tuple[int, int, int, int] | None = None
+
+    @model_validator(mode="after")
+    def _boxes(self) -> SideCameraConfig:
+        for key, box in (("pole_roi_px", self.pole_roi_px),
+                         ("sample_roi_px", self.sample_roi_px)):
+            if box is not None and not (0 <= box[0] < box[2] and 0 <= box[1] < box[3]):
+                raise ValueError(f"{key}: expected [x0, y0, x1, y1] with 0 <= x0 < x1 and "
+                                 f"0 <= y0 < y1, got {list(box)}")
+        return self
+
+
 class PrecheckConfig(Strict):
     max_eccentricity: float = Field(0.05, gt=0, lt=1)
     max_tilt_deg: float = Field(0.5, gt=0)
@@ -146,6 +170,7 @@ class AligndConfig(Strict):
     controllers: list[ControllerConfig] = Field(..., min_length=1)
     cameras: list[CameraConfig] = Field(..., min_length=1)
     holder: HolderConfig = HolderConfig()
+    side_camera: SideCameraConfig = SideCameraConfig()
     procedure: ProcedureConfig = ProcedureConfig()
     commission: CommissionConfig = CommissionConfig()
     daemon: DaemonConfig = DaemonConfig()

@@ -53,9 +53,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--focal-px", type=float, help="focal length in px (with --k1)")
     g.add_argument("--principal", metavar="X,Y", type=_pair,
                    help="principal point in px (with --k1; default: the image centre)")
+    g.add_argument("--holder-mm", metavar="L,S", type=_pair,
+                   help="holder's sides in mm; with --pixel-size-um gives --expected-size")
     g = p.add_argument_group("side")
     g.add_argument("--pole-x", type=float, help="approximate x (px) of the reference pole")
     g.add_argument("--sample-x", type=float, help="approximate x (px) of the sample edge")
+    g.add_argument("--pole-roi", metavar="X0,Y0,X1,Y1", type=_box,
+                   help="region of the pole (px; default: automatic)")
+    g.add_argument("--sample-roi", metavar="X0,Y0,X1,Y1", type=_box,
+                   help="region of the sample edge (px; default: automatic)")
+    p.add_argument("--config", metavar="FILE",
+                   help="take the holder size, the top camera's pixel size and the side "
+                        "camera's regions from an alignd config (options given win)")
     g = p.add_argument_group("rim")
     g.add_argument("--radius-mm", type=float, default=150.0, help="rim radius (default 150)")
     g.add_argument("--height-mm", type=float, default=800.0,
@@ -69,6 +78,38 @@ def _pair(text: str) -> tuple[float, float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected two numbers 'L,S', got {text!r}") from None
     return a, b
+
+
+def _box(text: str) -> tuple[int, int, int, int]:
+    try:
+        x0, y0, x1, y1 = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected four integers 'X0,Y0,X1,Y1', got {text!r}"
+                                         ) from None
+    if not (0 <= x0 < x1 and 0 <= y0 < y1):
+        raise argparse.ArgumentTypeError(f"region {text!r}: need 0 <= X0 < X1, 0 <= Y0 < Y1")
+    return x0, y0, x1, y1
+
+
+def _apply_config(args: argparse.Namespace) -> None:
+    """Fill unset options from ``--config`` (holder size, pixel size, side regions)."""
+    if args.config:
+        from alignd.config import load_config
+        from alignd.procedures.tools import expected_holder_px
+        cfg = load_config(args.config)
+        if args.expected_size is None and args.holder_mm is None:
+            args.expected_size = expected_holder_px(cfg)
+        if args.pixel_size_um is None:
+            cam = cfg.camera("top")
+            args.pixel_size_um = cam.pixel_size_um if cam is not None else None
+        args.pole_roi = args.pole_roi or cfg.side_camera.pole_roi_px
+        args.sample_roi = args.sample_roi or cfg.side_camera.sample_roi_px
+    if args.holder_mm is not None and args.expected_size is None:
+        if args.pixel_size_um is None:
+            raise InputError("--holder-mm needs --pixel-size-um (or --config)")
+        a, b = args.holder_mm
+        args.expected_size = (max(a, b) * 1000 / args.pixel_size_um,
+                              min(a, b) * 1000 / args.pixel_size_um)
 
 
 def _floats(text: str) -> list[float]:
@@ -88,9 +129,7 @@ def read_image(name: str) -> np.ndarray:
         raise InputError(f"{name}: cannot read image (not an image format OpenCV decodes)")
     if img.ndim == 3:
         img = cv2.cvtColor(img[:, :, :3], cv2.COLOR_BGR2GRAY)
-    if img.dtype == np.uint16:
-        img = (img.astype(np.float32) / 257.0)
-    elif img.dtype != np.uint8:
+    if img.dtype not in (np.uint8, np.uint16):  # 16-bit: the vision scales by bit depth
         img = img.astype(np.float32)
     return img
 
@@ -118,7 +157,7 @@ def _analyze_one(kind: str, name: str, args: argparse.Namespace,
             pp = args.principal or ((img.shape[1] - 1) / 2, (img.shape[0] - 1) / 2)
             lens = Lens(args.focal_px, pp, args.k1)
         det = track_holder(img, expected_size_px=args.expected_size, polarity=args.polarity,
-                           lens=lens)
+                           lens=lens, hint=prev)
         if not det.ok:
             raise VisionError(f"holder not measured: {det.reason or 'quality checks failed'}")
         corners = order_corners(det.corners_px, prev) if prev is not None else det.corners_px
@@ -136,7 +175,8 @@ def _analyze_one(kind: str, name: str, args: argparse.Namespace,
         return obj, line, corners
     if kind == "side":
         from alignd.vision.side import measure_tilt
-        m = measure_tilt(img, pole_x_px=args.pole_x, sample_x_px=args.sample_x)
+        m = measure_tilt(img, pole_x_px=args.pole_x, sample_x_px=args.sample_x,
+                         pole_roi_px=args.pole_roi, sample_roi_px=args.sample_roi)
         line = (f"sample {m.sample_angle_deg:+.4f} deg  pole {m.pole_angle_deg:+.4f} deg  "
                 f"tilt {m.tilt_deg:+.4f} +- {m.sigma_deg:.4f} deg")
         return m.to_json(), line, None
@@ -153,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.kind != "top" and (args.sweep_out or args.angles):
         raise InputError("--sweep-out/--angles apply to 'analyze top' only")
+    _apply_config(args)
     angles: list[float] | None = None
     if args.sweep_out:
         if args.angles is not None:

@@ -360,7 +360,7 @@ class _Run:
         for role, ident in self.rig.identities.items():
             self.recorder.event(f"{role}: {identity_text(vars(ident))}")
         if self.tools is None:
-            self.tools = default_tools()
+            self.tools = default_tools(self.cfg)
         # before anything moves: a sweep the soft limits forbid is a config error
         tt = self.rig.axis("turntable").config.soft_limits
         if not (tt.min <= -self.p.sweep_deg and self.p.sweep_deg <= tt.max):

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from alignd.config import AligndConfig
 from drivers.camera import Frame
 
 if TYPE_CHECKING:  # the solver is imported by default_tools, when it is used
@@ -88,6 +89,19 @@ class Tools:
     side: Callable[[Frame], SideInfo] | None = None
 
 
+def expected_holder_px(cfg: AligndConfig) -> tuple[float, float] | None:
+    """The holder's long and short side in top-camera px, from ``holder.size_mm`` and the
+    top camera's ``pixel_size_um`` (None when the pixel size is not configured)."""
+    cam = cfg.camera("top")
+    px = cam.pixel_size_um if cam is not None else None
+    if px is None and cfg.sim is not None:
+        px = cfg.sim.world.pixel_size_um
+    if px is None:
+        return None
+    a, b = cfg.holder.size_mm
+    return (max(a, b) * 1000.0 / px, min(a, b) * 1000.0 / px)
+
+
 def as_corners(det: Detection) -> Corners:
     """Normalise a holder detection; corners that are not four finite points are not ok."""
     ok = bool(det.ok)
@@ -99,18 +113,37 @@ def as_corners(det: Detection) -> Corners:
                    str(det.reason or ""))
 
 
-def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
-    """The real vision and solver (imported here, so the procedures load without them)."""
+def default_tools(cfg: AligndConfig | None = None) -> Tools:
+    """The real vision and solver (imported here, so the procedures load without them).
+
+    With a config the tracker knows the holder's size in px (``holder.size_mm`` and the top
+    camera's ``pixel_size_um``: a target of another size is never taken for the holder)
+    and seeds each frame's search with the previous frame's corners; the side camera's
+    regions of interest come from ``side_camera``.
+    """
     from alignd import solve as solver
-    from alignd.errors import StateError
+    from alignd.errors import StateError, VisionError
 
     try:
         from alignd import vision
     except ImportError as exc:
         raise StateError(f"alignd.vision cannot be imported: {exc}") from exc
+    expected = expected_holder_px(cfg) if cfg is not None else None
+    side_cfg = cfg.side_camera if cfg is not None else None
+    pole_roi = side_cfg.pole_roi_px if side_cfg else None
+    sample_roi = side_cfg.sample_roi_px if side_cfg else None
+    last: list[np.ndarray] = []  # the previous frame's corners (tracking seed)
 
     def track(frame: Frame) -> Corners:
-        return as_corners(vision.track_holder(frame.gray))
+        hint = last[0] if last else None
+        try:
+            det = vision.track_holder(frame.gray, expected_size_px=expected, hint=hint)
+        except VisionError as exc:
+            return Corners(np.full((4, 2), np.nan), False, 0.0, str(exc))
+        out = as_corners(det)
+        if out.ok:
+            last[:] = [out.corners_px]
+        return out
 
     def solve(angles: np.ndarray, points: np.ndarray,
               pixel_size_um: float | None) -> CentreResult:
@@ -119,7 +152,8 @@ def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
         return solver.solve_centre(sweep, method="auto")
 
     def tilt(frame: Frame) -> float:
-        return float(vision.measure_tilt(frame.gray).tilt_deg)
+        return float(vision.measure_tilt(frame.gray, pole_roi_px=pole_roi,
+                                  sample_roi_px=sample_roi).tilt_deg)
 
     def eccentricity(frame: Frame) -> float:
         return float(vision.fit_rim(frame.gray).eccentricity)
@@ -131,7 +165,8 @@ def default_tools(holder_size_mm: tuple[float, float] | None = None) -> Tools:
                        float(res.eccentricity), z if z == z else None)
 
     def side(frame: Frame) -> SideInfo:
-        res = vision.measure_tilt(frame.gray)
+        res = vision.measure_tilt(frame.gray, pole_roi_px=pole_roi,
+                                  sample_roi_px=sample_roi)
         xs = [e.x_mid_px for e in res.sample_edges] or [float("nan")]
         xp = [e.x_mid_px for e in res.pole_edges] or [float("nan")]
         return SideInfo(float(res.tilt_deg), float(res.sample_angle_deg),

@@ -25,7 +25,7 @@ import numpy as np
 from alignd.errors import VisionError
 
 __all__ = ["EdgePoints", "Line", "area_crossings", "as_gray", "check_usable", "coarse_edge",
-           "edge_points", "fit_line", "intersect"]
+           "edge_points", "fit_line", "intersect", "sensor_full_scale"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -36,17 +36,36 @@ def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
     if img.ndim != 2 or img.shape[0] < 16 or img.shape[1] < 16:
         raise VisionError(f"{what}: expected a 2-D (grey) or BGR image of at least 16 x 16 px, "
                           f"got shape {np.asarray(image).shape}")
+    if img.dtype == np.uint16:
+        # 10/12/14-bit cameras deliver 16-bit words, LSB- or MSB-aligned: express levels in
+        # 8-bit DN of the sensor's own full scale so thresholds mean the same everywhere
+        return img.astype(np.float32) * np.float32(255.0 / sensor_full_scale(img))
     return img.astype(np.float32)
+
+
+def sensor_full_scale(img: np.ndarray) -> float:
+    """Full scale of a 16-bit image: 2^bits - 1 for the smallest of 8, 10, 12, 14 or 16
+    bits holding its maximum, on the sensor's native grid (MSB-aligned words, whose low
+    bits are all zero, count as 16 bit)."""
+    a = np.asarray(img)
+    top = int(a.max()) if a.size else 0
+    for bits in (8, 10, 12, 14):
+        if top <= (1 << bits) - 1:
+            return float((1 << bits) - 1)
+    return 65535.0
 
 
 def check_usable(gray: np.ndarray, min_contrast: float, what: str = "image",
                  full_scale: float = 255.0) -> None:
     """Raise VisionError for a blank (featureless) or mostly saturated image."""
-    lo, hi = np.percentile(gray[::4, ::4], [1, 99])
+    sub = gray[::8, ::8].ravel()
+    k1, k99 = int(0.01 * (sub.size - 1)), int(0.99 * (sub.size - 1))
+    part = np.partition(sub, (k1, k99))
+    lo, hi = float(part[k1]), float(part[k99])
     if hi - lo < min_contrast:
         raise VisionError(f"{what}: blank image (1-99 % intensity range {hi - lo:.1f} DN "
                           f"< {min_contrast:.0f} DN); no target can be found")
-    sat = float(np.mean(gray[::4, ::4] >= full_scale - 0.5))
+    sat = float(np.mean(sub >= full_scale - 0.5))
     if sat > 0.5:
         raise VisionError(f"{what}: {100 * sat:.0f} % of the image is saturated; "
                           "reduce exposure or light")
@@ -98,6 +117,7 @@ class EdgePoints:
 
 
 def _moving_mean(v: np.ndarray, k: int) -> np.ndarray:
+    k = min(k, (v.size - 1) // 2)  # np.convolve's "same" is max(len) long
     if v.size == 0 or k <= 0:
         return v
     ker = np.ones(2 * k + 1)
@@ -211,8 +231,11 @@ def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: boo
     # a column that clips a corner or a neighbouring edge shows a partial step
     raw = E - S
     if good.any():
+        # against the contrast of the neighbouring columns (+-15), so that a shadow or
+        # vignetting that changes the contrast along the edge is followed
         med = float(_median(raw[good]))
-        good &= np.abs(raw - med) <= 0.2 * abs(med) + 3.0
+        ref = _moving_mean(np.where(good, raw, med), 15)
+        good &= np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
     denom = Sj - Ej
     denom = np.where(good[:, None] & (np.abs(denom) > 1e-6), denom, 1.0)
     frac = (P - Ej) / denom

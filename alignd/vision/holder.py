@@ -48,6 +48,7 @@ __all__ = ["HolderDetection", "YawMeasurement", "measure_yaw", "order_corners", 
 log = logging.getLogger(__name__)
 
 _DOWN = 4
+_HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 
 
 @dataclass(frozen=True)
@@ -188,6 +189,126 @@ def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
     return out
 
 
+def _noise_sigma(img: np.ndarray) -> float:
+    """Robust noise standard deviation of an image (MAD of its Laplacian)."""
+    lap = cv2.Laplacian(img, cv2.CV_32F, ksize=1)
+    return float(np.median(np.abs(lap[2:-2, 2:-2]))) * 1.4826 / math.sqrt(20.0) + 1e-3
+
+
+_SHIFTS = np.stack(np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)), -1).reshape(-1, 2).astype(float)
+
+
+def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
+                     min_contrast: float, max_peaks: int = 12
+                     ) -> list[tuple[float, np.ndarray, str]]:
+    """Rectangles of the expected size found by centre voting, threshold-ladder free.
+
+    At 1/4 scale every significant gradient pixel (beyond 4 noise sigma and twice the
+    minimum contrast, thinned by non-maximum suppression) that has a partner edge a whole
+    side (short or long) away along its gradient, with the opposite gradient, votes for
+    the midpoint: the holder's long sides vote along its long midline and its short sides
+    along the short one, so its centre is where the two cross; edges of anything else
+    scatter or do not pair. At each
+    peak the side directions are the dominant gradient orientation (mod 90 deg) around it,
+    and the long side is the assignment whose outline has the stronger gradient.
+    """
+    h, w = gray.shape
+    small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), 0.8)
+    sh, sw = small.shape
+    gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3)
+    mag = cv2.magnitude(gx, gy)
+    # significant (4 noise sigma, a Sobel step response of the minimum contrast) and thin
+    # (Canny's non-maximum suppression): shading and texture do not vote
+    thr = max(4.0 * _noise_sigma(small) * math.sqrt(12.0), 2.0 * min_contrast)
+    edges = cv2.Canny(np.clip(gx * 4, -32767, 32767).astype(np.int16),
+                      np.clip(gy * 4, -32767, 32767).astype(np.int16), 4 * thr, 8 * thr,
+                      L2gradient=True)
+    ys, xs = np.nonzero(edges)
+    if xs.size < 20:
+        return []
+    m = mag[ys, xs]
+    nx, ny = gx[ys, xs] / m, gy[ys, xs] / m
+    eL, eS = max(expected_size_px) / _DOWN, min(expected_size_px) / _DOWN
+    acc = np.zeros(sh * sw, np.float64)
+    near_edge = cv2.dilate(edges, np.ones((3, 3), np.uint8)) > 0
+    for d in (eS / 2, eL / 2, -eS / 2, -eL / 2):
+        # only where the opposite side is there too: an edge a whole side away, its
+        # gradient the other way (a circle, a single edge or another size does not pair)
+        qx = np.rint(xs + 2 * d * nx).astype(np.int64)
+        qy = np.rint(ys + 2 * d * ny).astype(np.int64)
+        ok = (qx >= 0) & (qx < sw) & (qy >= 0) & (qy < sh)
+        ok[ok] &= near_edge[qy[ok], qx[ok]]
+        qgx, qgy = gx[qy[ok], qx[ok]], gy[qy[ok], qx[ok]]
+        opposite = (qgx * nx[ok] + qgy * ny[ok]) < -0.7 * np.hypot(qgx, qgy)
+        ok[ok] = opposite
+        cx = np.rint(xs[ok] + d * nx[ok]).astype(np.int64)
+        cy = np.rint(ys[ok] + d * ny[ok]).astype(np.int64)
+        acc += np.bincount(cy * sw + cx, minlength=sh * sw)
+    A = cv2.GaussianBlur(acc.reshape(sh, sw).astype(np.float32), (0, 0), 1.2)
+    peaks_mask = (cv2.dilate(A, np.ones((5, 5), np.uint8)) <= A) & (0.25 * A.max() < A)
+    py, px = np.nonzero(peaks_mask)
+    order = np.argsort(-A[py, px])[:max_peaks]
+    theta_px = np.degrees(np.arctan2(ny, nx)) % 90.0
+    r_max = math.hypot(eL, eS) / 2 + 3
+    out = []
+    for k in order:
+        c = np.array([px[k], py[k]], float)
+        near = (xs - c[0]) ** 2 + (ys - c[1]) ** 2 <= r_max ** 2
+        if near.sum() < 10:
+            continue
+        hist = np.bincount((theta_px[near]).astype(int) % 90, weights=m[near], minlength=90)
+        hist = np.convolve(np.concatenate([hist[-2:], hist, hist[:2]]), np.ones(5), "valid")
+        t0 = float(np.argmax(hist)) + 0.5
+        # refine: magnitude-weighted circular mean of the orientations within +-3 deg
+        dt = (theta_px[near] - t0 + 45.0) % 90.0 - 45.0
+        sel = np.abs(dt) < 3.0
+        if sel.any():
+            t0 += float(np.average(dt[sel], weights=m[near][sel]))
+        # the box of the expected size there, its long side either way, nudged by up to
+        # 3 px (1/4 scale) to where its outline has the strongest gradient: a peak made by
+        # something else (a disc's rim votes a small ring) has no such outline
+        best = None
+        for ang in (t0, t0 + 90.0):  # direction of the long side
+            box = cv2.boxPoints(((c[0], c[1]), (eL, eS), ang)).astype(float)
+            sup = _outline_support(gx, gy, box, _SHIFTS)
+            j = int(np.argmax(sup))
+            if best is None or sup[j] > best[0]:
+                best = (float(sup[j]), box + _SHIFTS[j])
+        assert best is not None
+        full = (best[1] + 0.5) * _DOWN - 0.5
+        out.append((best[0], full, "?"))
+    out.sort(key=lambda t: -t[0])
+    return out
+
+
+def _outline_support(gx: np.ndarray, gy: np.ndarray, box: np.ndarray,
+                     shifts: np.ndarray | None = None) -> np.ndarray:
+    """For each shift (K, 2) of a box: mean |gradient . normal| along the middle 80 % of
+    its sides, times the square root of (weakest side / strongest side)."""
+    if shifts is None:
+        shifts = np.zeros((1, 2))
+    ctr = box.mean(axis=0)
+    t = np.linspace(0.1, 0.9, 24)[:, None]
+    pts, nrm = [], []
+    for i in range(4):
+        p0, p1 = box[i], box[(i + 1) % 4]
+        d = p1 - p0
+        n = np.array([-d[1], d[0]]) / (np.linalg.norm(d) or 1.0)
+        if np.dot((p0 + p1) / 2 - ctr, n) < 0:
+            n = -n
+        pts.append(p0 + t * d)
+        nrm.append(np.repeat(n[None], len(t), axis=0))
+    P = np.concatenate(pts)  # (96, 2)
+    N = np.concatenate(nrm)
+    Q = (shifts[:, None, :] + P[None]).astype(np.float32)  # (K, 96, 2)
+    ax = cv2.remap(gx, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    ay = cv2.remap(gy, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    v = np.abs(ax * N[None, :, 0] + ay * N[None, :, 1]).reshape(len(shifts), 4, -1).mean(axis=2)
+    return v.mean(axis=1) * np.sqrt(v.min(axis=1) / (v.max(axis=1) + 1e-9))
+
+
 def _fit_sides(gray: np.ndarray, corners: np.ndarray, half_width: int, margin: float,
                min_contrast: float, lens: Lens | None = None
                ) -> list[tuple[Line | None, EdgePoints]]:
@@ -204,43 +325,82 @@ def _fit_sides(gray: np.ndarray, corners: np.ndarray, half_width: int, margin: f
 
 def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None = None,
                  hint: np.ndarray | None = None, *, polarity: str | None = None,
-                 min_contrast: float = 15.0, max_rms_px: float = 0.4,
-                 passes: int = 1, lens: Lens | None = None) -> HolderDetection:
+                 min_contrast: float = 15.0, max_rms_px: float = 0.6,
+                 passes: int = 1, lens: Lens | None = None,
+                 size_tolerance: float = 0.12, max_candidates: int = 6) -> HolderDetection:
     """Find the holder's top face in a top-camera frame.
 
-    ``expected_size_px`` (long, short side in px) rejects blobs of the wrong size;
-    ``hint`` (previous corners) keeps the corner order and prefers the nearest blob;
-    ``polarity`` ("dark"/"light") restricts the search; ``lens`` (focal length, principal
-    point, k1) straightens distorted sides (corners stay in frame pixels; the angle and the
-    size are those of the undistorted image). Raises VisionError when the image
-    is unusable or holds no rectangular target; returns ``ok`` False if the fine fit fails.
+    ``expected_size_px`` (long, short side in px; from the config's holder size and pixel
+    size) makes the search look for that size (centre voting, see :func:`_vote_candidates`)
+    and rejects any result more than ``size_tolerance`` off; ``hint`` (previous corners)
+    seeds tracking, keeps the corner order and falls back to a full search when the holder
+    is not there; ``polarity`` ("dark"/"light") restricts the search; ``lens`` (focal
+    length, principal point, k1) straightens distorted sides (corners stay in frame
+    pixels; the angle and the size are those of the undistorted image). Raises
+    VisionError when the image is unusable or holds no candidate; returns ``ok`` False,
+    with the reason, when no candidate passes the checks.
     """
-    gray = as_gray(image, "top image")
-    check_usable(gray, min_contrast, "top image")
+    raw = np.asarray(image)
+    # tracking reads a few thousand pixels: an 8-bit frame is used as it is (no copy)
+    gray = raw if raw.ndim == 2 and raw.dtype == np.uint8 and min(raw.shape) >= 16 else \
+        as_gray(image, "top image")
     hint_arr = None if hint is None else np.asarray(hint, float)
+    reasons: list[str] = []
     if hint_arr is not None and hint_arr.shape == (4, 2) and np.all(np.isfinite(hint_arr)):
         # tracking: the previous corners seed the +-10 px side search directly; if the
         # holder is not there any more, fall back to a full search
         try:
             det = _refine(gray, order_corners(hint_arr), polarity, expected_size_px, hint_arr,
-                          min_contrast, max_rms_px, passes, lens)
+                          min_contrast, max_rms_px, passes, lens, size_tolerance)
             if det.ok:
                 return det
-        except VisionError:
-            pass
-    cands = _candidates(gray, expected_size_px, polarity)
-    if not cands:
-        raise VisionError("top image: no holder found (no rectangular blob of either "
-                          "polarity" + (f" near {expected_size_px} px" if expected_size_px
+            reasons.append(f"at the previous corners: {det.reason}")
+        except VisionError as exc:
+            reasons.append(f"at the previous corners: {exc}")
+    # (a frame the previous corners fit is usable; only a full search needs the check)
+    gray = as_gray(image, "top image")
+    check_usable(gray, min_contrast, "top image")
+    cands: list[tuple[float, np.ndarray, str]] = []
+    if expected_size_px is not None:
+        cands += _vote_candidates(gray, expected_size_px, min_contrast)
+    cands += _candidates(gray, expected_size_px, polarity)
+    tried: list[np.ndarray] = []
+    last: HolderDetection | None = None
+    for _score, box, _pol in cands:
+        ctr = box.mean(axis=0)
+        if any(np.linalg.norm(ctr - t) < 8.0 for t in tried):
+            continue
+        if len(tried) >= max_candidates:
+            break
+        tried.append(ctr)
+        try:
+            det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
+                          min_contrast, max_rms_px, passes, lens, size_tolerance)
+        except VisionError as exc:
+            reasons.append(f"candidate at ({ctr[0]:.0f}, {ctr[1]:.0f}): {exc}")
+            continue
+        if det.ok:
+            return det
+        reasons.append(f"candidate at ({ctr[0]:.0f}, {ctr[1]:.0f}): {det.reason}")
+        last = det
+    if last is None and not tried:
+        raise VisionError("top image: no holder found (no rectangular target of either "
+                          "polarity" + (f" near {expected_size_px[0]:.0f} x "
+                                        f"{expected_size_px[1]:.0f} px" if expected_size_px
                                         else "") + ")")
-    return _refine(gray, order_corners(cands[0][1]), polarity, expected_size_px, hint_arr,
-                   min_contrast, max_rms_px, passes, lens)
+    why = "no holder found: " + "; ".join(reasons)
+    if last is None:
+        raise VisionError(f"top image: {why}")
+    return HolderDetection(ok=False, corners_px=np.full((4, 2), np.nan),
+                           center_px=np.full(2, np.nan), angle_deg=math.nan, quality=0.0,
+                           corner_sigma_px=math.nan, polarity=last.polarity,
+                           size_px=(math.nan, math.nan), reason=why)
 
 
 def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
             expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
-            min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None = None
-            ) -> HolderDetection:
+            min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None = None,
+            size_tolerance: float = 0.15) -> HolderDetection:
     """Fine fit from approximate corners (a coarse box or the previous frame's corners)."""
     # pass 0: strongest step near each side of the approximate box (+-10 px), good to a few
     # tenths of a pixel; then the area method (exact wherever the edge sits in its window,
@@ -268,11 +428,19 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
                 corners[2] - corners[0]):
             break  # a line went astray: keep the previous corners and flag below
         corners = new
-        sides = _fit_sides(gray, corners, 5, 10.0, min_contrast, lens)
+        sides = _fit_sides(gray, corners, _HALF_WIDTH, 10.0, min_contrast, lens)
         lines = [s[0] for s in sides]
         lines_ideal = True
     pol = _polarity(gray, corners)
-    det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens)
+    det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
+                    size_tolerance)
+    if not det.ok and "rms" in det.reason:
+        # a soft (defocused) edge overflows the +-5 px window: measure it in +-9 px
+        wide = _fit_sides(gray, corners, 9, 12.0, min_contrast, lens)
+        det2 = _assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
+                         size_tolerance)
+        if det2.ok:
+            det = det2
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
     return det
@@ -298,7 +466,8 @@ def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
 
 def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, pol: str,
               expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
-              max_rms_px: float, lens: Lens | None = None) -> HolderDetection:
+              max_rms_px: float, lens: Lens | None = None, size_tolerance: float = 0.15
+              ) -> HolderDetection:
     lines = [s[0] for s in sides]
     reasons = []
     edge_ok = []
@@ -332,9 +501,14 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
     size = (math.nan, math.nan)
     if ok:
         # the holder must sit on the correct side of every line (convex, not self-crossing)
+        signs = _outside_signs(lines, out)
         if not _convex(out):
             ok = False
             reasons.append("fitted sides do not form a convex quadrilateral")
+        elif len(set(signs)) > 1:
+            ok = False
+            reasons.append("sides of both polarities (not one object): "
+                           + ", ".join("+" if v > 0 else "-" for v in signs))
         else:
             center = _quad_center(out)
             angle = _quad_angle(out)
@@ -343,7 +517,7 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
             if expected_size_px is not None:
                 eL, eS = max(expected_size_px), min(expected_size_px)
                 L, S = max(size), min(size)
-                if abs(L / eL - 1) > 0.15 or abs(S / eS - 1) > 0.15:
+                if abs(L / eL - 1) > size_tolerance or abs(S / eS - 1) > size_tolerance:
                     ok = False
                     reasons.append(f"size {L:.1f} x {S:.1f} px, expected {eL:.1f} x {eS:.1f}")
         if not ok:
@@ -363,6 +537,22 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
                            polarity=pol, size_px=size, corner_ok=corner_ok,
                            edge_rms_px=tuple(ln.rms_px if ln else math.nan for ln in lines),
                            reason="; ".join(reasons), lines=tuple(lines))
+
+
+def _outside_signs(lines: list[Line | None], corners: np.ndarray) -> list[int]:
+    """Per side: +1 where the outside is brighter than the inside, -1 where darker."""
+    ctr = corners.mean(axis=0)
+    out = []
+    for ln in lines:
+        if ln is None:
+            continue
+        # Line.contrast is the level change toward increasing minor coordinate (x for
+        # row-fitted sides, y for column-fitted ones); the inside is where the centre is
+        minor_ctr = ctr[0] if ln.vertical else ctr[1]
+        at = float(ln.minor_at(ctr[1] if ln.vertical else ctr[0]))
+        toward_plus_is_out = minor_ctr < at
+        out.append(int(np.sign(ln.contrast if toward_plus_is_out else -ln.contrast)))
+    return out
 
 
 def _convex(c: np.ndarray) -> bool:

@@ -190,22 +190,83 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
                 if inner.mean() < 0.6 or inner.sum() < 40:
                     continue
                 pts = pts[inner]
-                try:
-                    k = fit_ellipse(pts)
-                    _ctr, (a, b), _ = _conic_params(k)
-                except (VisionError, np.linalg.LinAlgError):
+                fit = _robust_ellipse(pts)
+                if fit is None:
                     continue
+                k, keep = fit
+                _ctr, (a, b), _ = _conic_params(k)
                 if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
                     continue
-                res = float(np.sqrt(np.mean(_sampson(k, pts) ** 2)))
-                if res > 1.0:
-                    continue
-                if best is None or a * b > best[0]:
-                    best = (a * b, pts)
+                # the longest elliptical trace wins: a holder, cable or shadow merged with
+                # the disc at this threshold only removes its points, not the rim's
+                score = float(keep.sum())
+                if best is None or score > best[0]:
+                    best = (score, pts[keep])
     if best is None:
         raise VisionError("rim image: no elliptical rim found")
     full = (best[1] + 0.5) * f - 0.5
     return _outer_crossings(gray, fit_ellipse(full), min_contrast)
+
+
+def _refit(pts: np.ndarray, keep: np.ndarray, tol: float
+           ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Iteratively reweighted ellipse: refit on the points within 3 robust sigma (>= tol)."""
+    k = None
+    for _ in range(5):
+        if keep.sum() < 40:
+            return None
+        try:
+            k = fit_ellipse(pts[keep])
+            _conic_params(k)
+        except (VisionError, np.linalg.LinAlgError):
+            return None
+        r = np.abs(_sampson(k, pts))
+        sig = float(np.median(r[keep])) * 1.4826
+        new = r < max(3 * sig, tol)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return (k, keep) if k is not None and keep.sum() >= 40 else None
+
+
+def _coverage(k: np.ndarray, pts: np.ndarray) -> float:
+    """Fraction of 36 angular sectors around the ellipse centre holding points."""
+    try:
+        ctr, _, _ = _conic_params(k)
+    except (VisionError, np.linalg.LinAlgError):
+        return 0.0
+    ang = np.arctan2(pts[:, 1] - ctr[1], pts[:, 0] - ctr[0])
+    return float(np.unique(((ang + np.pi) / (2 * np.pi) * 36).astype(int) % 36).size / 36)
+
+
+def _robust_ellipse(pts: np.ndarray, tol: float = 1.0
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
+    """An ellipse through much of ``pts`` (a contour): a fit to all of them, or, when
+    something merged with the rim at this threshold, to the best of eight arcs, refitted
+    on its inliers. None unless the inliers cover half the ellipse within 1 px rms."""
+    n = len(pts)
+    trials = [np.ones(n, bool)]
+    if n >= 160:
+        arc = n // 4
+        for s0 in range(0, n, max(n // 8, 1)):
+            m = np.zeros(n, bool)
+            m[(s0 + np.arange(arc)) % n] = True
+            trials.append(m)
+    best = None
+    for keep in trials:
+        fit = _refit(pts, keep, tol)
+        if fit is None:
+            continue
+        k, kp = fit
+        if _coverage(k, pts[kp]) < 0.5:
+            continue
+        if float(np.sqrt(np.mean(_sampson(k, pts[kp]) ** 2))) > 1.0:
+            continue
+        if best is None or kp.sum() > best[1].sum():
+            best = (k, kp)
+        if kp.mean() > 0.9:
+            break
+    return best
 
 
 def _outer_crossings(gray: np.ndarray, k: np.ndarray, min_contrast: float,
@@ -311,7 +372,8 @@ def _rim_points(gray: np.ndarray, k: np.ndarray, half_width: int, min_contrast: 
 
 
 def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float | None = 800.0,
-            *, min_contrast: float = 15.0, half_width: int = 4, tails: int = 2) -> RimFit:
+            *, min_contrast: float = 15.0, half_width: int = 4, tails: int = 2,
+            max_rms_px: float = 0.25) -> RimFit:
     """Fit the turntable rim's outer edge; eccentricity and (with R, h) camera zenith.
 
     The whole rim (or most of it) must be in view: at the reference rig's 160 um/px a
@@ -338,6 +400,12 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
             k = fit_ellipse(xy)
     ctr, (a, b), ang = _conic_params(k)
     rms = float(np.sqrt(np.mean(_sampson(k, xy) ** 2)))
+    cover = _coverage(k, xy)
+    if cover < 0.6 or rms > max_rms_px:
+        # a cable loop or a half-hidden rim fits some ellipse: flag it, do not guess
+        raise VisionError(f"rim image: the rim's edge was traced over only {100 * cover:.0f} % "
+                          f"of its circumference (rms {rms:.2f} px); need 60 % within "
+                          f"{max_rms_px:g} px")
     e = math.sqrt(max(0.0, 1.0 - (b / a) ** 2))
     zen = (camera_zenith_from_eccentricity(e, radius_mm, height_mm)
            if radius_mm and height_mm else math.nan)

@@ -1,7 +1,9 @@
 """Side camera: the sample edge, the vertical reference pole, and the tilt between them.
 
-Angles are from the image vertical, positive when the line's top leans toward +x. The tilt
-is sample minus pole, so a rolled camera (which turns both lines) does not change it.
+Angles are from the image vertical, positive when the line's top leans toward +x: on screen
+(y down) that is a clockwise turn, the same sense as the top camera's angles ("x toward
+y"). The tilt is sample minus pole, so a rolled camera (which turns both lines) does not
+change it; a positive tilt means the sample's top leans further toward +x than the pole's.
 
 Method: Canny + Hough finds the near-vertical edges coarsely; each is then measured in every
 row it crosses with the area method (:mod:`alignd.vision.edges`) and fitted as a line
@@ -12,8 +14,9 @@ Canny + Hough angle (0.01 deg accumulator bins) is kept as :func:`baseline_tilt`
 
 from __future__ import annotations
 
+import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -29,7 +32,12 @@ from alignd.vision.edges import (
     fit_line,
 )
 
-__all__ = ["SideEdge", "SideMeasurement", "baseline_tilt", "find_vertical_edges", "measure_tilt"]
+SIGN_CONVENTION = ("angles in deg from the image vertical, positive when the line's top leans "
+                   "toward +x (clockwise on screen, the top camera's x-toward-y sense); "
+                   "tilt = sample - pole")
+
+__all__ = ["SIGN_CONVENTION", "SideEdge", "SideMeasurement", "baseline_tilt",
+           "find_vertical_edges", "measure_tilt"]
 
 
 @dataclass(frozen=True)
@@ -54,10 +62,12 @@ class SideMeasurement:
     sigma_deg: float  # standard error of the tilt from the line fits
     sample_edges: tuple[SideEdge, ...]
     pole_edges: tuple[SideEdge, ...]
+    mode: str = "auto"  # "roi": found in the configured regions; "auto": found unaided
 
     def to_json(self) -> dict[str, object]:
         return {"sample_angle_deg": self.sample_angle_deg, "pole_angle_deg": self.pole_angle_deg,
                 "tilt_deg": self.tilt_deg, "sigma_deg": self.sigma_deg,
+                "sign_convention": SIGN_CONVENTION, "mode": self.mode,
                 "sample_x_px": [round(e.x_mid_px, 3) for e in self.sample_edges],
                 "pole_x_px": [round(e.x_mid_px, 3) for e in self.pole_edges]}
 
@@ -171,58 +181,148 @@ def _combine(edges: list[SideEdge]) -> tuple[float, float]:
     return float(w @ a / w.sum()), float(1.0 / math.sqrt(w.sum()))
 
 
-def measure_tilt(image: np.ndarray, *, pole_x_px: float | None = None,
-                 sample_x_px: float | None = None, min_contrast: float = 15.0,
-                 pole_min_fraction: float = 0.97) -> SideMeasurement:
+def _length(e: SideEdge) -> int:
+    """Rows the edge was measured in (not its span: a fit through pieces of several
+    collinear edges spans far but uses few rows)."""
+    return e.line.n_used
+
+
+def _shifted(e: SideEdge, dx: int, dy: int) -> SideEdge:
+    """An edge measured in a crop, in full-image coordinates."""
+    off = np.array([dx, dy], float)
+    ln = replace(e.line, d=float(e.line.d + e.line.n @ off))
+    return replace(e, x_mid_px=e.x_mid_px + dx, rows=(e.rows[0] + dy, e.rows[1] + dy), line=ln)
+
+
+def _roi_edges(image: np.ndarray, roi: tuple[int, int, int, int], what: str,
+               min_contrast: float) -> list[SideEdge]:
+    """The near-vertical edges inside a region of interest (x0, y0, x1, y1, exclusive)."""
+    h, w = np.asarray(image).shape[:2]
+    x0, y0, x1, y1 = (int(v) for v in roi)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if x1 - x0 < 16 or y1 - y0 < 40:
+        raise VisionError(f"side image: the {what} region {tuple(roi)} is empty or too small "
+                          f"inside the {w} x {h} image (needs at least 16 x 40 px)")
+    crop = np.asarray(image)[y0:y1, x0:x1]
+    min_rows = max(20, min(60, int(0.3 * (y1 - y0))))
+    try:
+        edges = find_vertical_edges(crop, min_contrast=min_contrast, min_rows=min_rows)
+    except VisionError as exc:
+        raise VisionError(f"side image: {what} region {tuple(roi)}: {exc}") from None
+    return [_shifted(e, x0, y0) for e in edges]
+
+
+def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
+    """The rod: the narrowest pair of x-adjacent edges of opposite polarity."""
+    best: tuple[float, list[SideEdge]] | None = None
+    srt = sorted(edges, key=lambda e: e.x_mid_px)
+    for a, b in itertools.pairwise(srt):
+        d = b.x_mid_px - a.x_mid_px
+        if a.contrast * b.contrast < 0 and d <= max_width_px and abs(
+                a.angle_deg - b.angle_deg) < 0.5 and (best is None or d < best[0]):
+            best = (d, [a, b])
+    return best[1] if best else []
+
+
+def _partner(main: SideEdge, pool: list[SideEdge]) -> list[SideEdge]:
+    """The sample's other face: parallel, opposite polarity, over the same rows."""
+    out = [main]
+    for e in pool:
+        if e is main or e.contrast * main.contrast >= 0 or abs(e.angle_deg - main.angle_deg) >= 0.2:
+            continue
+        lo, hi = max(e.rows[0], main.rows[0]), min(e.rows[1], main.rows[1])
+        if hi - lo >= 0.8 * _length(main) and hi - lo >= 0.8 * _length(e):
+            out.append(e)
+            break
+    return out
+
+
+def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | None = None,
+                 sample_roi_px: tuple[int, int, int, int] | None = None,
+                 pole_x_px: float | None = None, sample_x_px: float | None = None,
+                 min_contrast: float = 15.0, pole_min_fraction: float = 0.97,
+                 max_pole_width_px: float | None = None, max_edge_rms_px: float = 0.35
+                 ) -> SideMeasurement:
     """Sample angle, pole angle and tilt from one side-camera frame.
 
-    The pole's edges run through the image (top to bottom, ``pole_min_fraction`` of the
-    height centred), the sample's do not; give
-    ``pole_x_px`` / ``sample_x_px`` (approximate x) when the scene is ambiguous.
-    Raises VisionError when either target is missing.
+    With regions of interest (``pole_roi_px``, ``sample_roi_px``: x0, y0, x1, y1 in px,
+    from the config's ``side_camera`` keys) each target is measured inside its own region:
+    the pole as its pair of opposite edges (or its one edge), the sample as its longest
+    edge there. Without them (automatic mode) the pole is the narrowest bar (two
+    x-adjacent edges of opposite polarity, at most ``max_pole_width_px`` apart, default a
+    tenth of the width) whose edges both run through the image height (or, failing that, 90 %
+    of it: uneven light may hide their ends), and the
+    sample edge is the edge nearest the pole among the long ones (at least 80 % of the
+    longest other edge); its parallel opposite face is averaged in when it covers the same
+    rows. ``pole_x_px`` / ``sample_x_px`` (approximate x) pick among the edges instead.
+    Raises VisionError when either target is missing or ambiguous.
     """
-    edges = find_vertical_edges(image, min_contrast=min_contrast)
-    h = np.asarray(image).shape[0]
-    if not edges:
-        raise VisionError("side image: no near-vertical edge found (neither sample nor pole)")
-    if pole_x_px is not None:
-        pole_pool = sorted(edges, key=lambda e: abs(e.x_mid_px - pole_x_px))[:2]
-        pole_pool = [e for e in pole_pool if abs(e.x_mid_px - pole_x_px) < 60]
+    h, w = np.asarray(image).shape[:2]
+    mode = "roi" if pole_roi_px is not None or sample_roi_px is not None else "auto"
+    if pole_roi_px is not None:
+        pool = _roi_edges(image, pole_roi_px, "pole", min_contrast)
+        pole = _pole_pair(pool, float(pole_roi_px[2] - pole_roi_px[0])) or (
+            [max(pool, key=_length)] if pool else [])
+        if not pole:
+            raise VisionError(f"side image: reference pole not found in its region "
+                              f"{tuple(pole_roi_px)}")
+    edges: list[SideEdge] = []
+    if pole_roi_px is None or sample_roi_px is None:
+        edges = find_vertical_edges(image, min_contrast=min_contrast)
+        if not edges:
+            raise VisionError("side image: no near-vertical edge found (neither sample nor "
+                              "pole)")
+    if pole_roi_px is None:
+        if pole_x_px is not None:
+            pool = sorted(edges, key=lambda e: abs(e.x_mid_px - pole_x_px))[:2]
+            pool = [e for e in pool if abs(e.x_mid_px - pole_x_px) < 60]
+        else:
+            # through the whole height; failing that, 90 % of it (uneven light, ends)
+            for frac in (pole_min_fraction, 0.9):
+                pool = [e for e in edges if _spans(e, h, frac)]
+                pole = _pole_pair(pool, max_pole_width_px or 0.1 * w)
+                if pole:
+                    break
+        if pole_x_px is not None:
+            pole = _pole_pair(pool, max_pole_width_px or 0.1 * w)
+        if not pole and pole_x_px is not None and pool:
+            pole = [max(pool, key=_length)]
+        if not pole:
+            raise VisionError("side image: reference pole not found (no narrow bar whose two "
+                              "edges run through the image from top to bottom; set "
+                              "side_camera.pole_roi_px)")
+    pole_x = float(np.mean([e.x_mid_px for e in pole]))
+    if sample_roi_px is not None:
+        rest = [e for e in _roi_edges(image, sample_roi_px, "sample", min_contrast)
+                if all(abs(e.x_mid_px - p.x_mid_px) > 3 for p in pole)]
+        if not rest:
+            raise VisionError(f"side image: sample edge not found in its region "
+                              f"{tuple(sample_roi_px)}")
+        main = max(rest, key=_length)
     else:
-        pole_pool = [e for e in edges if _spans(e, h, pole_min_fraction)]
-    pole: list[SideEdge] = []
-    if len(pole_pool) >= 2:
-        # the rod: the closest pair of opposite polarity
-        best = None
-        for i in range(len(pole_pool)):
-            for j in range(i + 1, len(pole_pool)):
-                a, b = pole_pool[i], pole_pool[j]
-                if a.contrast * b.contrast < 0:
-                    d = abs(a.x_mid_px - b.x_mid_px)
-                    if best is None or d < best[0]:
-                        best = (d, [a, b])
-        pole = best[1] if best else [max(pole_pool, key=lambda e: e.line.n_used)]
-    elif pole_pool:
-        pole = pole_pool
-    if not pole:
-        raise VisionError("side image: reference pole not found (no edge spanning "
-                          f"{100 * pole_min_fraction:.0f} % of the image height)")
-    rest = [e for e in edges if all(e is not p for p in pole)]
-    if sample_x_px is not None:
-        rest = [e for e in rest if abs(e.x_mid_px - sample_x_px) < 150]
-    if pole_x_px is None:
-        rest = [e for e in rest if not _spans(e, h, pole_min_fraction)]
-    if not rest:
-        raise VisionError("side image: sample edge not found (no edge besides the pole)")
-    # the sample: its longest edge, plus a parallel partner (the plate's other face)
-    main = max(rest, key=lambda e: e.line.n_used)
-    sample = [main] + [e for e in rest if e is not main and abs(e.angle_deg - main.angle_deg)
-                       < 0.2 and abs(e.x_mid_px - main.x_mid_px) < 200
-                       and e.contrast * main.contrast < 0]
-    sample = sample[:2]
+        rest = [e for e in edges if all(e is not p and abs(e.x_mid_px - p.x_mid_px) > 3
+                                        for p in pole)]
+        if sample_x_px is not None:
+            rest = [e for e in rest if abs(e.x_mid_px - sample_x_px) < 150]
+        # a straight edge fits to hundredths of a pixel; a fit through the sample's edge
+        # and a nearly collinear holder edge below it does not, and would bias the tilt
+        rest = [e for e in rest if e.line.rms_px <= max_edge_rms_px]
+        if not rest:
+            raise VisionError("side image: sample edge not found (no straight edge besides "
+                              "the pole)")
+        longest = max(_length(e) for e in rest)
+        if longest < 0.25 * h:
+            raise VisionError(f"side image: sample edge not found (the longest edge besides "
+                              f"the pole covers {longest} of {h} rows)")
+        long_ones = [e for e in rest if _length(e) >= 0.8 * longest]
+        if sample_x_px is not None:
+            main = min(long_ones, key=lambda e: abs(e.x_mid_px - sample_x_px))
+        else:
+            main = min(long_ones, key=lambda e: abs(e.x_mid_px - pole_x))
+    sample = _partner(main, rest)
     sa, ss = _combine(sample)
     pa, ps = _combine(pole)
-    return SideMeasurement(sa, pa, sa - pa, math.hypot(ss, ps), tuple(sample), tuple(pole))
+    return SideMeasurement(sa, pa, sa - pa, math.hypot(ss, ps), tuple(sample), tuple(pole), mode)
 
 
 def baseline_tilt(image: np.ndarray, pole_x_px: float, sample_x_px: float, *,

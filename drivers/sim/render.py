@@ -33,9 +33,13 @@ from drivers.config import SimWorldConfig
 from drivers.sim.world import PinholeCamera, SideScene, TopScene, World
 
 __all__ = [
+    "Conic",
     "PartialShadow",
+    "Polygon",
+    "Raster",
     "RenderOptions",
     "conic_to_ellipse",
+    "coverage",
     "distort_points",
     "posed_world",
     "render_side",
@@ -596,3 +600,10 @@ def posed_world(cfg: SimWorldConfig | None = None, seed: int = 0, turntable_deg:
     for role, v in offsets_mm.items():
         axes[role] = _FixedAxis(v)
     return World(cfg, axes, np.random.default_rng(seed))  # type: ignore[arg-type]
+
+
+# ---- the exact-coverage primitives, for other scene generators (drivers.sim.scenes) -------
+Raster = _Raster
+Polygon = _Polygon
+Conic = _Conic
+coverage = _coverage

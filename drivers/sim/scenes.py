@@ -1,0 +1,726 @@
+"""Randomised camera scenes with exact truth: what real rigs vary, not what we drew once.
+
+Every scene is drawn directly in pixel space (no world model) so that its truth is exact:
+the measured outlines (the holder, the sample beside it, the turntable disc, the side
+camera's pole and sample silhouette) use the renderer's exact pixel-area coverage
+(:mod:`drivers.sim.render`, including radial lens distortion); everything that is not
+measured (textures, screws, labels and text, cables, speculars) is drawn anti-aliased at
+4x and area-averaged. Light is multiplicative (gradient, vignetting, soft and cast
+shadows), then defocus, shot and read noise, quantisation to 8 bit or 12 bit (stored in 16,
+LSB or MSB aligned) and optionally a JPEG round trip (UVC cameras stream MJPEG).
+
+- :func:`random_top_scene`: the top camera. The holder is darker or lighter than its
+  surroundings; the turntable disc brighter, darker or absent; pixel scales 50-250 um/px,
+  holder sizes 20-100 mm, aspect 1-2.5, any image rotation (camera roll); distractors: screws
+  and a label with text on the holder, cables, floor holes and screws, a second rectangle of
+  another size; soft and cast shadows, speculars; vignetting, defocus, lens distortion.
+- :func:`random_side_scene`: the side camera. A narrow full-height pole and the sample's
+  silhouette, in either order and either contrast, the sample spanning the full height or
+  standing on a holder and a platform; uneven light; the regions of interest a config
+  would give.
+- :func:`random_rim_scene`: the turntable rim (e 0.01-0.2), brighter or darker than the
+  floor, partly hidden by the holder, cables and shadows.
+
+Scenes are reproducible from the generator passed in. Some choices keep the truth exact
+and the task defined, and are stated where made: nothing unmeasured crosses a measured
+outline (cables and speculars keep clear of the holder's sides), a sample beside the holder
+differs from it in the sense opposite to the holder's own contrast, a second rectangle differs
+from the holder's size by at least 30 %, the pole stands clear of the sample by twice its
+width.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from drivers.sim.render import Conic, Polygon, Raster, coverage
+
+__all__ = [
+    "RIM_CATEGORIES",
+    "SIDE_CATEGORIES",
+    "TOP_CATEGORIES",
+    "RimSceneSample",
+    "SideSceneSample",
+    "TopSceneSample",
+    "ellipse_conic",
+    "random_rim_scene",
+    "random_side_scene",
+    "random_top_scene",
+]
+
+TopCategory = Literal["plain", "distractors", "shadows", "optics", "jpeg", "12-bit", "everything"]
+TOP_CATEGORIES: tuple[TopCategory, ...] = ("plain", "distractors", "shadows", "optics", "jpeg",
+                                           "12-bit", "everything")
+SideCategory = Literal["full-height sample", "sample on holder", "uneven light", "jpeg",
+                       "12-bit"]
+SIDE_CATEGORIES: tuple[SideCategory, ...] = ("full-height sample", "sample on holder",
+                                             "uneven light", "jpeg", "12-bit")
+RimCategory = Literal["clear", "occluded", "dark disc", "jpeg"]
+RIM_CATEGORIES: tuple[RimCategory, ...] = ("clear", "occluded", "dark disc", "jpeg")
+
+
+@dataclass(frozen=True)
+class Encoding:
+    """How the frame leaves the camera: bit depth, alignment in 16 bit, JPEG quality."""
+
+    bits: Literal[8, 12] = 8
+    msb_aligned: bool = False  # 12-bit values shifted into the top of 16 bits
+    jpeg_quality: int | None = None
+
+
+@dataclass(frozen=True)
+class TopSceneSample:
+    """A top-camera frame and its truth (corners in frame pixels, the drawn order)."""
+
+    image: np.ndarray
+    category: str
+    corners_px: np.ndarray  # (4, 2), distorted (frame) pixels
+    holder_size_mm: tuple[float, float]  # long, short
+    pixel_size_um: float  # at the principal point, undistorted
+    polarity: Literal["dark", "light"]
+    lens: tuple[float, tuple[float, float], float] | None  # focal px, principal px, k1
+    encoding: Encoding
+    params: dict[str, object] = field(default_factory=dict)
+
+    @property
+    def expected_size_px(self) -> tuple[float, float]:
+        return (self.holder_size_mm[0] * 1000.0 / self.pixel_size_um,
+                self.holder_size_mm[1] * 1000.0 / self.pixel_size_um)
+
+
+@dataclass(frozen=True)
+class SideSceneSample:
+    """A side-camera frame and its truth (angles in deg from the image vertical, + when the
+    line's top leans toward +x; tilt = sample - pole)."""
+
+    image: np.ndarray
+    category: str
+    sample_angle_deg: float
+    pole_angle_deg: float
+    sample_x_px: tuple[float, float]  # both sample edges' x at the sample's middle row
+    near_x_px: float  # x of the sample edge nearest the pole, at the sample's middle row
+    pole_x_px: float  # pole centre x at the image's middle row
+    sample_rows: tuple[int, int]
+    pole_roi_px: tuple[int, int, int, int]  # x0, y0, x1, y1 (exclusive), as a config gives
+    sample_roi_px: tuple[int, int, int, int]
+    encoding: Encoding
+    params: dict[str, object] = field(default_factory=dict)
+
+    @property
+    def tilt_deg(self) -> float:
+        return self.sample_angle_deg - self.pole_angle_deg
+
+
+@dataclass(frozen=True)
+class RimSceneSample:
+    """A frame with the turntable rim and its truth (the outer ellipse)."""
+
+    image: np.ndarray
+    category: str
+    center_px: tuple[float, float]
+    axes_px: tuple[float, float]
+    angle_deg: float
+    eccentricity: float
+    encoding: Encoding
+    params: dict[str, object] = field(default_factory=dict)
+
+
+# ---- drawing helpers -------------------------------------------------------------------
+def ellipse_conic(center: tuple[float, float], a: float, b: float, angle_deg: float
+                  ) -> np.ndarray:
+    """3x3 conic matrix of an ellipse (semi-axes a, b; a along angle_deg, x toward y)."""
+    t = math.radians(angle_deg)
+    R = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    M = R @ np.diag([1 / a ** 2, 1 / b ** 2]) @ R.T
+    c = np.asarray(center, float)
+    C = np.zeros((3, 3))
+    C[:2, :2] = M
+    C[:2, 2] = C[2, :2] = -M @ c
+    C[2, 2] = c @ M @ c - 1.0
+    return C / np.abs(C).max()
+
+
+def _rect(center: np.ndarray, L: float, S: float, angle_deg: float) -> np.ndarray:
+    t = math.radians(angle_deg)
+    u = np.array([math.cos(t), math.sin(t)])
+    v = np.array([-math.sin(t), math.cos(t)])
+    return np.array([center - u * L / 2 - v * S / 2, center + u * L / 2 - v * S / 2,
+                     center + u * L / 2 + v * S / 2, center - u * L / 2 + v * S / 2])
+
+
+def _paint(img: np.ndarray, shape: Polygon | Conic, ras: Raster, level: float | np.ndarray,
+           region: tuple[int, int, int, int] | None = None) -> None:
+    """Composite ``level`` over img where ``shape`` covers it (exact pixel-area coverage)."""
+    h, w = img.shape
+    if region is None:
+        if isinstance(shape, Polygon):
+            b = shape.bbox(ras)
+            region = (max(0, math.floor(b[0])), max(0, math.floor(b[1])),
+                      min(w, math.ceil(b[2]) + 1), min(h, math.ceil(b[3]) + 1))
+        else:
+            region = (0, 0, w, h)
+    x0, y0, x1, y1 = region
+    if x1 <= x0 or y1 <= y0:
+        return
+    cov = coverage(shape, ras, region)
+    sub = img[y0:y1, x0:x1]
+    lv = level if np.isscalar(level) else np.asarray(level)[y0:y1, x0:x1]
+    sub += (lv - sub) * cov
+
+
+def _aa_mask(shape: tuple[int, int], draw: Callable[[np.ndarray, int], None]) -> np.ndarray:
+    """An anti-aliased coverage mask: ``draw(mask4, shift)`` draws at 4x in 8-bit,
+    the result is area-averaged back (for what is not measured: cables, text, screws)."""
+    h, w = shape
+    big = np.zeros((h * 4, w * 4), np.uint8)
+    draw(big, 4)
+    return cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+
+
+def _texture(rng: np.random.Generator, shape: tuple[int, int], scale_px: float,
+             amp: float) -> np.ndarray:
+    """Smooth random texture of about ``scale_px`` correlation length, std ``amp``."""
+    h, w = shape
+    sh, sw = max(2, int(h / scale_px) + 2), max(2, int(w / scale_px) + 2)
+    t = cv2.resize(rng.standard_normal((sh, sw)).astype(np.float32), (w, h),
+                   interpolation=cv2.INTER_CUBIC)
+    s = float(t.std()) or 1.0
+    return t * np.float32(amp / s)
+
+
+def _light(rng: np.random.Generator, shape: tuple[int, int], *, gradient: float,
+           vignetting: float, shadow: bool) -> tuple[np.ndarray, dict[str, object]]:
+    """Multiplicative illumination: gradient, vignetting and a soft partial shadow."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    gx, gy = rng.uniform(-gradient, gradient, 2)
+    L = 1.0 + np.float32(gx) * (xx / w - 0.5) + np.float32(gy) * (yy / h - 0.5)
+    info: dict[str, object] = {"gradient": (float(gx), float(gy))}
+    if vignetting > 0:
+        cx, cy = w / 2 + rng.uniform(-0.1, 0.1) * w, h / 2 + rng.uniform(-0.1, 0.1) * h
+        r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / float((w / 2) ** 2 + (h / 2) ** 2)
+        L *= 1.0 - np.float32(vignetting) * r2
+        info["vignetting"] = vignetting
+    if shadow:
+        a = rng.uniform(0, 2 * math.pi)
+        px, py = rng.uniform(0.2, 0.8) * w, rng.uniform(0.2, 0.8) * h
+        soft = rng.uniform(4.0, 60.0)
+        depth = rng.uniform(0.1, 0.4)
+        t = np.tanh(((xx - px) * math.cos(a) + (yy - py) * math.sin(a)) / soft)
+        L *= 1.0 - np.float32(depth / 2) * (1.0 + t)
+        info["soft_shadow"] = {"softness_px": soft, "depth": depth}
+    return L.astype(np.float32), info
+
+
+def _finish(img: np.ndarray, rng: np.random.Generator, *, blur: float, read_noise: float,
+            electrons_per_dn: float, enc: Encoding) -> np.ndarray:
+    """Defocus, noise, quantisation and encoding of an image in 8-bit DN (float)."""
+    if blur > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur, borderType=cv2.BORDER_REFLECT)
+    scale = 4095.0 / 255.0 if enc.bits == 12 else 1.0
+    img = img * np.float32(scale)
+    var = np.float32((read_noise * scale) ** 2) + np.clip(img, 0, None) * np.float32(
+        scale / electrons_per_dn)
+    img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.sqrt(var)
+    np.rint(img, out=img)
+    if enc.bits == 12:
+        out16 = np.clip(img, 0, 4095).astype(np.uint16)
+        return out16 << 4 if enc.msb_aligned else out16
+    out = np.clip(img, 0, 255).astype(np.uint8)
+    if enc.jpeg_quality is not None:
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(enc.jpeg_quality)])
+        if not ok:
+            raise RuntimeError("JPEG encoding failed")
+        out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    return out
+
+
+def _encoding(rng: np.random.Generator, category: str) -> Encoding:
+    if category == "jpeg" or (category == "everything" and rng.random() < 0.4):
+        return Encoding(8, False, int(rng.integers(60, 96)))
+    if category == "12-bit" or (category == "everything" and rng.random() < 0.3):
+        return Encoding(12, bool(rng.random() < 0.5), None)
+    return Encoding()
+
+
+def _dist_to_poly(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Signed distance (px, + inside) of points to a convex polygon."""
+    c = poly.astype(np.float32).reshape(-1, 1, 2)
+    return np.array([cv2.pointPolygonTest(c, (float(p[0]), float(p[1])), True) for p in pts])
+
+
+def _bezier(rng: np.random.Generator, w: int, h: int, n: int = 80) -> np.ndarray:
+    """A cable: a cubic curve entering and leaving through the image border."""
+    def border() -> np.ndarray:
+        s = int(rng.integers(4))
+        t = rng.uniform(0, 1)
+        return np.array([[t * w, -10.0], [w + 10.0, t * h], [t * w, h + 10.0],
+                         [-10.0, t * h]][s])
+    p0, p3 = border(), border()
+    p1 = np.array([rng.uniform(0, w), rng.uniform(0, h)])
+    p2 = np.array([rng.uniform(0, w), rng.uniform(0, h)])
+    t = np.linspace(0, 1, n)[:, None]
+    return ((1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * p1 + 3 * (1 - t) * t ** 2 * p2
+            + t ** 3 * p3)
+
+
+def _draw_cables(rng: np.random.Generator, img: np.ndarray, n: int,
+                 keep_out: list[np.ndarray], clearance: float) -> int:
+    """Draw up to n cables that stay ``clearance`` px outside every keep-out polygon."""
+    h, w = img.shape
+    drawn = 0
+    for _ in range(n * 6):
+        if drawn >= n:
+            break
+        curve = _bezier(rng, w, h)
+        width = rng.uniform(3.0, 12.0)
+        if any(np.max(_dist_to_poly(curve, k)) > -(clearance + width) for k in keep_out):
+            continue
+        pts = np.round(curve * 16).astype(np.int32).reshape(-1, 1, 2)
+
+        def draw(m: np.ndarray, s: int, pts: np.ndarray = pts, width: float = width) -> None:
+            cv2.polylines(m, [pts * s], False, 255, thickness=max(1, round(width * s)),
+                          lineType=cv2.LINE_AA, shift=4)
+        mask = _aa_mask((h, w), draw)
+        level = rng.choice([rng.uniform(10, 50), rng.uniform(180, 240)])
+        img += (np.float32(level) - img) * mask
+        drawn += 1
+    return drawn
+
+
+def _draw_circles(img: np.ndarray, centers: np.ndarray, radii: np.ndarray,
+                  levels: np.ndarray) -> None:
+    h, w = img.shape
+    for (cx, cy), r, lv in zip(centers, radii, levels, strict=True):
+        x0, y0 = max(int(cx - r - 3), 0), max(int(cy - r - 3), 0)
+        x1, y1 = min(int(cx + r + 4), w), min(int(cy + r + 4), h)
+        if x1 <= x0 or y1 <= y0:
+            continue
+
+        def draw(m: np.ndarray, s: int, cx: float = cx, cy: float = cy, r: float = r,
+                 x0: int = x0, y0: int = y0) -> None:
+            cv2.circle(m, (round((cx - x0) * s * 16), round((cy - y0) * s * 16)),
+                       round(r * s * 16), 255, -1, cv2.LINE_AA, 4)
+        mask = _aa_mask((y1 - y0, x1 - x0), draw)
+        sub = img[y0:y1, x0:x1]
+        sub += (np.float32(lv) - sub) * mask
+
+
+def _speculars(rng: np.random.Generator, shape: tuple[int, int], n: int,
+               keep_out: list[np.ndarray]) -> np.ndarray:
+    """Additive Gaussian highlights, each at least 3 sigma + 8 px from the keep-out outlines."""
+    h, w = shape
+    out = np.zeros(shape, np.float32)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    placed = 0
+    for _ in range(n * 10):
+        if placed >= n:
+            break
+        sig = rng.uniform(4.0, 25.0)
+        p = np.array([[rng.uniform(0, w), rng.uniform(0, h)]])
+        if any(abs(float(_dist_to_poly(p, k)[0])) < 3 * sig + 8 for k in keep_out):
+            continue
+        amp = rng.uniform(20, 70)
+        out += np.float32(amp) * np.exp(-((xx - p[0, 0]) ** 2 + (yy - p[0, 1]) ** 2)
+                                        / np.float32(2 * sig * sig))
+        placed += 1
+    return out
+
+
+# ---- top camera --------------------------------------------------------------------------
+def random_top_scene(rng: np.random.Generator, category: str | None = None,
+                     size_px: tuple[int, int] = (1280, 720)) -> TopSceneSample:
+    """One randomised top-camera frame with its exact corners (see the module docstring)."""
+    cat = str(category or TOP_CATEGORIES[int(rng.integers(len(TOP_CATEGORIES)))])
+    every = cat == "everything"
+    distract = cat == "distractors" or (every and rng.random() < 0.7)
+    shadows = cat == "shadows" or (every and rng.random() < 0.7)
+    optics = cat == "optics" or (every and rng.random() < 0.7)
+    w, h = size_px
+    enc = _encoding(rng, cat)
+    # geometry: the holder must fit (any rotation) with room around it
+    for _ in range(1000):
+        px_um = float(rng.uniform(50, 250))
+        L_mm = float(rng.uniform(20, 100))
+        S_mm = L_mm / float(rng.uniform(1.0, 2.5))
+        Lp, Sp = L_mm * 1000 / px_um, S_mm * 1000 / px_um
+        if Sp >= 50 and math.hypot(Lp, Sp) <= 0.75 * h:
+            break
+    angle = float(rng.uniform(-180, 180))
+    k1 = float(rng.uniform(-0.12, 0.12)) if optics and rng.random() < 0.7 else 0.0
+    focal = float(rng.uniform(0.9, 1.6) * w)
+    principal = (w / 2 - 0.5 + float(rng.uniform(-20, 20)),
+                 h / 2 - 0.5 + float(rng.uniform(-20, 20)))
+    ras = Raster(size_px, focal, principal, k1)
+    sample_th = float(rng.uniform(3, 10)) * 1000 / px_um if rng.random() < 0.5 else 0.0
+    margin = 25.0
+    room = math.sqrt(max((h - 2 * margin - 2) ** 2 - Lp ** 2, 0.0))  # for Sp + 2 * sample
+    # a plate as wide as the holder's short side would be a second holder-sized
+    # rectangle: the plate is at most half of it
+    sample_th = min(sample_th, (room - Sp) / 2, 0.5 * Sp)
+    if sample_th < 8.0:
+        sample_th = 0.0  # no room for a sample plate in this frame
+    half = math.hypot(Lp, Sp + 2 * sample_th) / 2
+    ctr = np.array([rng.uniform(margin + half, w - margin - half),
+                    rng.uniform(margin + half, h - margin - half)])
+    holder = _rect(ctr, Lp, Sp, angle)
+    corners = ras.distort(holder)
+    # the sample: a plate along side 0-1, outside the holder
+    sample = None
+    if sample_th > 0:
+        t = math.radians(angle)
+        out_n = np.array([math.sin(t), -math.cos(t)])  # away from side 2-3
+        sample = np.array([holder[0], holder[1], holder[1] + out_n * sample_th,
+                           holder[0] + out_n * sample_th])
+    outline = holder if sample is None else np.vstack([holder, sample[2:]])
+    hull = cv2.convexHull(outline.astype(np.float32))[:, 0].astype(float)
+    hull_px = ras.distort(hull)
+
+    # levels: floor, disc (brighter, darker or absent), holder of either polarity
+    disc_mode = str(rng.choice(["brighter", "darker", "absent"], p=[0.45, 0.3, 0.25]))
+    cast = shadows and rng.random() < 0.7
+    cast_depth = float(rng.uniform(0.1, 0.4)) if cast else 0.0
+    floor, disc, hold = 200.0, 150.0, 40.0  # (replaced by the first levels that fit)
+    pol: Literal["dark", "light"] = "dark"
+    for _ in range(1000):
+        floor = float(rng.uniform(25, 225))
+        disc = floor
+        if disc_mode == "brighter":
+            disc = floor + float(rng.uniform(30, 130))
+        elif disc_mode == "darker":
+            disc = floor - float(rng.uniform(30, 130))
+        if not 15 <= disc <= 235:
+            continue
+        pol = "dark" if rng.random() < 0.5 else "light"
+        if pol == "dark":
+            top = disc * (1 - cast_depth) - 30
+            if top < 10:
+                continue
+            hold = float(rng.uniform(5, top))
+        else:
+            if disc + 40 > 240:
+                continue
+            hold = float(rng.uniform(disc + 40, 240))
+        break
+    params: dict[str, object] = {"pixel_size_um": px_um, "holder_mm": (L_mm, S_mm),
+                                 "disc": disc_mode, "polarity": pol, "k1": k1,
+                                 "sample_px": sample_th}
+    img: np.ndarray = np.full((h, w), floor, np.float32)
+    floor_kind = str(rng.choice(["smooth", "grain", "breadboard"]))
+    img += _texture(rng, (h, w), rng.uniform(40, 200), rng.uniform(0, 8))
+    if floor_kind == "grain":
+        img += _texture(rng, (h, w), rng.uniform(1.5, 4), rng.uniform(2, 6))
+    params["floor"] = floor_kind
+    if floor_kind == "breadboard":  # an optical table: M6 holes on a 25 mm grid
+        pitch = 25000 / px_um
+        ox, oy = rng.uniform(0, pitch, 2)
+        gx = np.arange(ox, w, pitch)
+        gy = np.arange(oy, h, pitch)
+        cs = np.array([(x, y) for x in gx for y in gy])
+        if cs.size:
+            r = np.full(len(cs), 3000 / px_um)
+            _draw_circles(img, cs, r, np.full(len(cs), floor * 0.3))
+    if disc_mode != "absent":
+        e = float(rng.uniform(0.0, 0.2))
+        need = float(np.max(np.linalg.norm(hull - ctr, axis=1))) + 20
+        b = float(rng.uniform(need / 0.98 + 5, max(need / 0.98 + 6, 1.5 * w)))
+        a = b / math.sqrt(1 - e * e)
+        # the disc centre, offset from the holder so that the holder stays inside
+        off = rng.uniform(-1, 1, 2) * max(b - need, 0.0) * 0.5
+        dctr = ctr + off
+        dang = float(rng.uniform(-90, 90))
+        ring = rng.random() < 0.4
+        disc_tex = disc + _texture(rng, (h, w), rng.uniform(2, 30), rng.uniform(0.5, 3))
+        if ring:
+            rw = float(rng.uniform(4, 20))
+            rl = float(np.clip(disc + rng.choice([-1, 1]) * rng.uniform(20, 60), 10, 245))
+            _paint(img, Conic(ellipse_conic(tuple(dctr), a, b, dang)), ras, rl)
+            _paint(img, Conic(ellipse_conic(tuple(dctr), a - rw, b - rw, dang)), ras, disc_tex)
+        else:
+            _paint(img, Conic(ellipse_conic(tuple(dctr), a, b, dang)), ras, disc_tex)
+        params["disc_e"] = e
+    keep_out = [hull_px]
+    if distract:
+        # floor/disc screws away from the holder
+        n = int(rng.integers(2, 8))
+        cs = np.column_stack([rng.uniform(0, w, n), rng.uniform(0, h, n)])
+        rr = rng.uniform(3, 10, n)
+        far = _dist_to_poly(cs, hull_px) < -(rr + 15)
+        _draw_circles(img, cs[far], rr[far], rng.uniform(10, 240, n)[far])
+        # a second rectangle that is not the holder: at least 30 % off in size
+        for _ in range(50):
+            f = float(rng.choice([rng.uniform(0.35, 0.7), rng.uniform(1.3, 1.7)]))
+            L2 = Lp * f
+            S2 = min(L2 / rng.uniform(1.0, 2.5), Sp * float(rng.uniform(0.4, 2.0)))
+            c2 = np.array([rng.uniform(0, w), rng.uniform(0, h)])
+            r2 = _rect(c2, L2, S2, float(rng.uniform(-180, 180)))
+            if np.min(-_dist_to_poly(r2, hull)) < 25 or np.any(
+                    _dist_to_poly(hull, r2) > -25):
+                continue
+            lv2 = float(rng.choice([rng.uniform(5, 60), rng.uniform(190, 250)]))
+            _paint(img, Polygon(r2), ras, lv2)
+            keep_out.append(ras.distort(r2))
+            params["second_rectangle"] = (L2, S2)
+            break
+    # the holder's cast shadow on the ground
+    if cast:
+        dx, dy = rng.uniform(-18, 18, 2)
+        blur = float(rng.uniform(2, 10))
+        mask = np.zeros((h, w), np.float32)
+        pts = np.round((hull_px + np.array([dx, dy])) * 16).astype(np.int32)
+        cv2.fillConvexPoly(mask, pts, 1.0, lineType=cv2.LINE_AA, shift=4)
+        mask = cv2.GaussianBlur(mask, (0, 0), blur)
+        img *= (1.0 - cast_depth * mask).astype(np.float32)
+        params["cast_shadow"] = {"offset_px": (float(dx), float(dy)), "depth": cast_depth}
+    # holder and sample (exact coverage)
+    hold_map = hold + _texture(rng, (h, w), rng.uniform(2, 40), rng.uniform(0.3, 2.0))
+    if sample is None:
+        _paint(img, Polygon(holder), ras, hold_map)
+    else:
+        # one composite for both: painting them in turn would let the ground show
+        # through their shared side (each covers part of those pixels)
+        lv = (float(rng.uniform(hold + 30, 250)) if pol == "dark" and hold + 30 < 250 else
+              float(rng.uniform(5, max(hold - 30, 6))))
+        hp, sp = Polygon(holder), Polygon(sample)
+        b1, b2 = hp.bbox(ras), sp.bbox(ras)
+        region = (max(0, math.floor(min(b1[0], b2[0]))), max(0, math.floor(min(b1[1], b2[1]))),
+                  min(w, math.ceil(max(b1[2], b2[2])) + 1),
+                  min(h, math.ceil(max(b1[3], b2[3])) + 1))
+        x0, y0, x1, y1 = region
+        ch, cs = coverage(hp, ras, region), coverage(sp, ras, region)
+        sub = img[y0:y1, x0:x1]
+        img[y0:y1, x0:x1] = (sub * np.clip(1.0 - ch - cs, 0.0, 1.0)
+                             + hold_map[y0:y1, x0:x1] * ch + np.float32(lv) * cs)
+    if distract:
+        _holder_furniture(rng, img, holder, Lp, Sp, angle, hold, params)
+        params["cables"] = _draw_cables(rng, img, int(rng.integers(1, 4)), keep_out=[hull_px],
+                                        clearance=12.0)
+    light, info = _light(rng, (h, w), gradient=0.4 if shadows or optics else 0.2,
+                         vignetting=float(rng.uniform(0.1, 0.45)) if optics else 0.0,
+                         shadow=shadows and rng.random() < 0.7)
+    params.update(info)
+    if shadows:
+        inner = _rect(ctr, Lp - 40, Sp - 40, angle) if Sp > 80 else None
+        spec = _speculars(rng, (h, w), int(rng.integers(1, 4)), [hull_px])
+        if inner is not None and rng.random() < 0.5:  # a highlight on the holder's face
+            c = ctr + rng.uniform(-0.2, 0.2, 2) * (Sp - 40)
+            sig = min(Sp / 10, 15.0)
+            yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+            spec += np.float32(rng.uniform(15, 50)) * np.exp(
+                -((xx - c[0]) ** 2 + (yy - c[1]) ** 2) / np.float32(2 * sig * sig))
+        img += spec
+    img *= light
+    blur = float(rng.uniform(0.8, 2.0)) if optics else float(rng.uniform(0.3, 1.0))
+    out = _finish(img, rng, blur=blur, read_noise=float(rng.uniform(0.5, 2.5)),
+                  electrons_per_dn=float(rng.uniform(20, 80)), enc=enc)
+    params["blur_px"] = blur
+    return TopSceneSample(out, cat, corners, (max(L_mm, S_mm), min(L_mm, S_mm)), px_um, pol,
+                          (focal, principal, k1) if k1 else None, enc, params)
+
+
+def _holder_furniture(rng: np.random.Generator, img: np.ndarray, holder: np.ndarray,
+                      Lp: float, Sp: float, angle: float, hold: float,
+                      params: dict[str, object]) -> None:
+    """Screws near the holder's corners and a label with text, inside its face: clear of
+    its sides by at least 18 px and 15 % of the short side."""
+    inset = max(18.0, 0.15 * Sp)
+    ctr = holder.mean(axis=0)
+    t = math.radians(angle)
+    u = np.array([math.cos(t), math.sin(t)])
+    v = np.array([-math.sin(t), math.cos(t)])
+    r = min(max(0.05 * Sp, 3.0), inset * 0.6)
+    screws = [ctr + su * u * (Lp / 2 - inset) + sv * v * (Sp / 2 - inset)
+              for su in (-1, 1) for sv in (-1, 1)]
+    n = int(rng.integers(0, 5))
+    if n:
+        lv = float(rng.choice([rng.uniform(5, 40), rng.uniform(170, 240)]))
+        _draw_circles(img, np.array(screws[:n]), np.full(n, r), np.full(n, lv))
+    if rng.random() < 0.7 and Lp - 2 * inset > 30 and Sp - 2 * inset > 20:
+        lw = (Lp - 2 * inset - 2 * r - 8) * rng.uniform(0.5, 0.9)
+        lh = (Sp - 2 * inset) * rng.uniform(0.4, 0.8)
+        lab = _rect(ctr, max(lw, 10), lh, angle)
+        label_lv = float(np.clip(hold + rng.choice([-1, 1]) * rng.uniform(40, 150), 5, 250))
+        h, w = img.shape
+        mask = np.zeros((h, w), np.float32)
+        cv2.fillConvexPoly(mask, np.round(lab * 16).astype(np.int32), 1.0, cv2.LINE_AA, 4)
+        img += (np.float32(label_lv) - img) * mask
+        text = "".join(rng.choice(list("ABCDEFGHJKLMNPRSTUVWXYZ0123456789- /"), 8))
+        scale = max(lh / 40.0, 0.3)
+        box = np.zeros((int(lh * 1.5) + 4, int(max(lw, 10) * 1.5) + 4), np.uint8)
+        cv2.putText(box, text, (2, int(lh * 0.9)), cv2.FONT_HERSHEY_SIMPLEX, scale, 255,
+                    max(1, int(scale * 2)), cv2.LINE_AA)
+        # put the text box into the label, rotated with the holder
+        M = cv2.getRotationMatrix2D((box.shape[1] / 2, box.shape[0] / 2), -angle, 1.0)
+        M[:, 2] += ctr - np.array([box.shape[1] / 2, box.shape[0] / 2])
+        tm = cv2.warpAffine(box, M, (w, h)).astype(np.float32) / 255.0
+        tm *= mask > 0.999
+        text_lv = float(np.clip(label_lv + (-1 if label_lv > 128 else 1) * 100, 0, 255))
+        img += (np.float32(text_lv) - img) * tm
+        params["label"] = text
+
+
+# ---- side camera ------------------------------------------------------------------------
+def random_side_scene(rng: np.random.Generator, category: str | None = None,
+                      size_px: tuple[int, int] = (1280, 720)) -> SideSceneSample:
+    """One randomised side-camera frame (see the module docstring)."""
+    cat = str(category or SIDE_CATEGORIES[int(rng.integers(len(SIDE_CATEGORIES)))])
+    w, h = size_px
+    enc = Encoding(8, False, int(rng.integers(60, 96))) if cat == "jpeg" else (
+        Encoding(12, bool(rng.random() < 0.5)) if cat == "12-bit" else Encoding())
+    full = cat == "full-height sample" or (cat != "sample on holder" and rng.random() < 0.4)
+    bg = float(rng.uniform(40, 220))
+    roll = float(rng.uniform(-1.0, 1.0))
+    pole_ang = float(rng.uniform(-0.3, 0.3)) + roll
+    tilt = float(rng.uniform(-0.5, 0.5))
+    samp_ang = pole_ang + tilt
+    wp = float(rng.uniform(14, 50))  # the area method needs ~12 px between two edges
+    ws = float(rng.uniform(max(3 * wp, 60), 350))
+    gap = float(rng.uniform(2 * wp + 20, 350))
+    total = wp + gap + ws
+    x_left = float(rng.uniform(60, w - 60 - total))
+    pole_left = rng.random() < 0.5
+    if pole_left:
+        pole_c, s_near = x_left + wp / 2, x_left + wp + gap
+        s_far = s_near + ws
+    else:
+        s_far, s_near = x_left, x_left + ws
+        pole_c = s_near + gap + wp / 2
+
+    def level_vs(ref: float, lo: float = 40) -> float:
+        for _ in range(100):
+            v = float(rng.choice([rng.uniform(5, 250)]))
+            if abs(v - ref) >= lo:
+                return v
+        return ref + lo if ref < 128 else ref - lo
+
+    pole_lv = level_vs(bg, 60)
+    samp_lv = level_vs(bg, 60)
+    img = np.full((h, w), bg, np.float32) + _texture(rng, (h, w), rng.uniform(50, 300),
+                                                     rng.uniform(0, 5))
+    ras = Raster(size_px, 1.0, (0.0, 0.0), 0.0)
+    ym = (h - 1) / 2
+
+    def slanted(x_mid: float, ang: float, y_at: float, y0: float, y1: float,
+                width: float) -> np.ndarray:
+        """Quad with left side through (x_mid, y_at) leaning by ang (top toward +x)."""
+        ta = math.tan(math.radians(ang))
+        xl0, xl1 = x_mid - (y0 - y_at) * ta, x_mid - (y1 - y_at) * ta
+        return np.array([[xl0, y0], [xl0 + width, y0], [xl1 + width, y1], [xl1, y1]])
+
+    big = 4.0 * h
+    pole = slanted(pole_c - wp / 2, pole_ang, ym, -big, h + big, wp)
+    if full:
+        y_top, y_bot = -big, h + big
+        rows = (0, h - 1)
+    else:
+        y_top = float(rng.uniform(0.03, 0.25) * h)
+        y_bot = float(y_top + rng.uniform(0.55, 0.97 - y_top / h) * h)
+        y_bot = min(y_bot, h - 40.0)
+        rows = (math.ceil(y_top), math.floor(y_bot))
+    y_mid = (max(y_top, 0) + min(y_bot, h - 1)) / 2
+    s_left = min(s_near, s_far)
+    # x of the sample's left edge at y_mid: the edges are parallel, leaning by samp_ang
+    slab = slanted(s_left, samp_ang, y_mid, y_top, y_bot, ws)
+    params: dict[str, object] = {"full_height": full, "pole_left": pole_left, "wp": wp,
+                                 "ws": ws, "gap": gap, "tilt": tilt}
+    _paint(img, Polygon(pole), ras, pole_lv)
+    if not full:
+        # the holder and the platform below the sample, wider, their own small angles
+        hh = float(rng.uniform(25, 70))
+        hold_lv = level_vs(samp_lv, 25)
+        room = gap - 15
+        ext_near = float(rng.uniform(5, max(room * 0.6, 6)))
+        ext_far = float(rng.uniform(5, 80))
+        if pole_left:
+            hx0, hx1 = s_left - ext_near, s_left + ws + ext_far
+        else:
+            hx0, hx1 = s_left - ext_far, s_left + ws + ext_near
+        ha = pole_ang + float(rng.uniform(-1, 1))
+        holder = slanted(hx0, ha, y_bot, y_bot, y_bot + hh, hx1 - hx0)
+        _paint(img, Polygon(holder), ras, hold_lv)
+        plat_lv = level_vs(hold_lv, 25)
+        ext2 = float(rng.uniform(2, max(room * 0.6 - ext_near, 3)))
+        px0 = hx0 - (ext2 if pole_left else rng.uniform(5, 100))
+        px1 = hx1 + (rng.uniform(5, 100) if pole_left else ext2)
+        pa = pole_ang + float(rng.uniform(-1, 1))
+        plat = slanted(px0, pa, y_bot + hh, y_bot + hh, h + big, px1 - px0)
+        _paint(img, Polygon(plat), ras, plat_lv)
+        params["holder_px"] = hh
+    _paint(img, Polygon(slab), ras, samp_lv)
+    uneven = cat == "uneven light" or rng.random() < 0.3
+    light, info = _light(rng, (h, w), gradient=0.5 if uneven else 0.15,
+                         vignetting=float(rng.uniform(0.1, 0.4)) if uneven else 0.0,
+                         shadow=uneven and rng.random() < 0.6)
+    params.update(info)
+    img *= light
+    blur = float(rng.uniform(0.4, 1.5))
+    out = _finish(img, rng, blur=blur, read_noise=float(rng.uniform(0.5, 2.0)),
+                  electrons_per_dn=float(rng.uniform(40, 150)), enc=enc)
+    ta = math.tan(math.radians(samp_ang))
+    x_left_mid = float(slab[0, 0] - (y_mid - y_top) * ta)
+    xs = (x_left_mid, x_left_mid + ws)
+    near = xs[0] if pole_left else xs[1]
+    tp = math.tan(math.radians(pole_ang))
+    pole_mid = float(pole[0, 0] - (ym - pole[0, 1]) * tp) + wp / 2
+    # the regions a config would give: the pole's column over the full height; a window
+    # around the sample's near edge over the sample's rows
+    pr = (max(int(pole_mid - wp / 2 - 30), 0), 0, min(int(pole_mid + wp / 2 + 31), w), h)
+    half = int(min(40, ws / 2 - 5, gap / 2))
+    sr = (max(int(near - half), 0), max(rows[0] + 10, 0), min(int(near + half + 1), w),
+          min(rows[1] - 10, h))
+    return SideSceneSample(out, cat, samp_ang, pole_ang, xs, near, pole_mid, rows, pr, sr,
+                           enc, params)
+
+
+# ---- rim ---------------------------------------------------------------------------------
+def random_rim_scene(rng: np.random.Generator, category: str | None = None,
+                     size_px: tuple[int, int] = (1280, 720)) -> RimSceneSample:
+    """One randomised frame of the turntable rim, in view, e 0.01-0.2 (see the docstring)."""
+    cat = str(category or RIM_CATEGORIES[int(rng.integers(len(RIM_CATEGORIES)))])
+    w, h = size_px
+    enc = Encoding(8, False, int(rng.integers(80, 96))) if cat == "jpeg" else Encoding()
+    e = float(rng.uniform(0.01, 0.2))
+    ang = float(rng.uniform(-90, 90))
+    a = float(rng.uniform(180, 0.5 * h - 15))
+    b = a * math.sqrt(1 - e * e)
+    c = (float(w / 2 + rng.uniform(-(w / 2 - a - 15), w / 2 - a - 15)),
+         float(h / 2 + rng.uniform(-(h / 2 - a - 12), h / 2 - a - 12)))
+    dark = cat == "dark disc" or rng.random() < 0.3
+    for _ in range(100):
+        floor = float(rng.uniform(20, 235))
+        disc = floor + (-1 if dark else 1) * float(rng.uniform(40, 140))
+        if 10 <= disc <= 240:
+            break
+    ras = Raster(size_px, float(w), (w / 2, h / 2), 0.0)
+    img = np.full((h, w), floor, np.float32) + _texture(rng, (h, w), rng.uniform(40, 200),
+                                                        rng.uniform(0, 6))
+    disc_map = disc + _texture(rng, (h, w), rng.uniform(2, 30), rng.uniform(0.5, 3))
+    _paint(img, Conic(ellipse_conic(c, a, b, ang)), ras, disc_map)
+    occluded = cat == "occluded" or (cat != "clear" and rng.random() < 0.4)
+    params: dict[str, object] = {"dark_disc": dark, "occluded": occluded}
+    if occluded:
+        # a holder overlapping the rim, cables across it, a shadow
+        t = float(rng.uniform(0, 2 * math.pi))
+        L = float(rng.uniform(60, 160))
+        p = np.array(c) + np.array([a * math.cos(t), b * math.sin(t)]) * 0.95
+        hr = _rect(p, L, L / rng.uniform(1, 2.5), float(rng.uniform(-90, 90)))
+        mask = np.zeros((h, w), np.float32)
+        cv2.fillConvexPoly(mask, np.round((hr + rng.uniform(-15, 15, 2)) * 16).astype(
+            np.int32), 1.0, cv2.LINE_AA, 4)
+        img *= 1.0 - np.float32(rng.uniform(0.1, 0.4)) * cv2.GaussianBlur(mask, (0, 0), 5)
+        _paint(img, Polygon(hr), ras, float(rng.uniform(5, 250)))
+        params["cables"] = _draw_cables(rng, img, int(rng.integers(1, 3)), [], 0.0)
+    light, info = _light(rng, (h, w), gradient=0.3, vignetting=float(rng.uniform(0, 0.3)),
+                         shadow=occluded and rng.random() < 0.5)
+    params.update(info)
+    img *= light
+    out = _finish(img, rng, blur=float(rng.uniform(0.4, 1.5)),
+                  read_noise=float(rng.uniform(0.5, 2.5)),
+                  electrons_per_dn=float(rng.uniform(20, 80)), enc=enc)
+    return RimSceneSample(out, cat, c, (a, b), ang, e, enc, params)
