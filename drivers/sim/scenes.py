@@ -476,7 +476,7 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
         pts = np.round((hull_px + np.array([dx, dy])) * 16).astype(np.int32)
         cv2.fillConvexPoly(mask, pts, 1.0, lineType=cv2.LINE_AA, shift=4)
         mask = cv2.GaussianBlur(mask, (0, 0), blur)
-        img *= (1.0 - cast_depth * mask).astype(np.float32)
+        np.multiply(img, 1.0 - cast_depth * mask, out=img, casting="unsafe")
         params["cast_shadow"] = {"offset_px": (float(dx), float(dy)), "depth": cast_depth}
     # holder and sample (exact coverage)
     hold_map = hold + _texture(rng, (h, w), rng.uniform(2, 40), rng.uniform(0.3, 2.0))
