@@ -472,7 +472,7 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
     if cast:
         dx, dy = rng.uniform(-18, 18, 2)
         blur = float(rng.uniform(2, 10))
-        mask = np.zeros((h, w), np.float32)
+        mask: np.ndarray = np.zeros((h, w), np.float32)
         pts = np.round((hull_px + np.array([dx, dy])) * 16).astype(np.int32)
         cv2.fillConvexPoly(mask, pts, 1.0, lineType=cv2.LINE_AA, shift=4)
         mask = cv2.GaussianBlur(mask, (0, 0), blur)
