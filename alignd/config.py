@@ -52,8 +52,12 @@ class SideCameraConfig(Strict):
     pole.
     """
 
-    pole_roi_px: tuple[int, int, int, int] | None = None
-    sample_roi_px: tuple[int, int, int, int] | None = None
+    pole_roi_px: tuple[int, int, int, int] | None = Field(None, description=(
+        "the region holding the vertical reference pole, [x0, y0, x1, y1] px; unset = found "
+        "automatically"))
+    sample_roi_px: tuple[int, int, int, int] | None = Field(None, description=(
+        "the region holding the sample's edge, [x0, y0, x1, y1] px; unset = the nearest "
+        "long straight edge beside the pole"))
 
     @model_validator(mode="after")
     def _boxes(self) -> SideCameraConfig:
@@ -170,7 +174,8 @@ class AligndConfig(Strict):
     controllers: list[ControllerConfig] = Field(..., min_length=1)
     cameras: list[CameraConfig] = Field(..., min_length=1)
     holder: HolderConfig = HolderConfig()
-    side_camera: SideCameraConfig = SideCameraConfig()
+    side_camera: SideCameraConfig = Field(default_factory=SideCameraConfig, description=(
+        "where the side camera sees the pole and the sample (tilt pre-check)"))
     procedure: ProcedureConfig = ProcedureConfig()
     commission: CommissionConfig = CommissionConfig()
     daemon: DaemonConfig = DaemonConfig()
