@@ -168,7 +168,8 @@ def test_watchdog_is_fed_through_a_slow_homing_of_three_axes() -> None:
                         clock=clock.now)
     homed = threading.Event()
 
-    def home_all(rig: Rig, cfg: Any, *, progress: Any, abort: Any, recorder: Any) -> Any:
+    def home_all(rig: Rig, cfg: Any, *, progress: Any, abort: Any, recorder: Any,
+                 run_id: str, commission: Any = None) -> Any:
         rig.home_where_required(["x", "y", "z"], park_mid=False)
         homed.set()
         return FakeResult("within_tolerance", (0.0, 0.0), 1.0, 1)
@@ -177,10 +178,14 @@ def test_watchdog_is_fed_through_a_slow_homing_of_three_axes() -> None:
         ctl = ControllerConfig(name="platform", protocol="zaber", port=srv.url,
                                axes=axis_cfgs)  # type: ignore[arg-type]
 
+        class PollClock:
+            """The simulation's time; every driver wait notes pings, then advances it."""
+
+            now = staticmethod(clock.now)
+            sleep = staticmethod(poll_sleep)
+
         def factory(_cfg: Any) -> Rig:
-            axes = make_axes(ctl)
-            for ax in axes:
-                ax._sleep, ax._now = poll_sleep, clock.now
+            axes = make_axes(ctl, clock=PollClock())
             return Rig(axes={a.config.role: a for a in axes}, cameras={})
 
         with daemon_with(factory, {"check": home_all}, notifier) as d:

@@ -60,8 +60,7 @@ def test_zaber_driver_and_emulator_units_against_the_manual(stage: str) -> None:
     with EmulatorServer(emu, "tcp") as srv:
         ctl = ControllerConfig(name="platform", protocol="zaber", port=srv.url,
                                axes=[{**cfg, "speed": 3.0, "accel": 15.0}])  # type: ignore[list-item]
-        (axis,) = make_axes(ctl)
-        axis._sleep, axis._now = clock.advance, clock.now
+        (axis,) = make_axes(ctl, clock=clock)
         with axis:
             axis.home()
             axis.move_to(12.3456)
@@ -200,8 +199,7 @@ def test_smc100_sends_positions_speeds_and_limits_in_stage_units() -> None:
     with EmulatorServer(emu, "tcp") as srv:
         ctl = ControllerConfig(name="turntable", protocol="smc100", port=srv.url,
                                axes=[cfg])  # type: ignore[list-item]
-        (axis,) = make_axes(ctl)
-        axis._sleep, axis._now = clock.advance, clock.now
+        (axis,) = make_axes(ctl, clock=clock)
         with axis:
             assert axis.controller_limits() == (-170.0, 170.0)
             axis.home()
