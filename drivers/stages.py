@@ -74,8 +74,12 @@ def lookup(name: str, protocol: str | None = None) -> StageModel | None:
 
 def resolve(protocol: str, stage: str, units: str) -> StageModel | None:
     """The model an axis config means; None for an SMC100 axis without a stage name
-    (the SMC100 scales nothing by stage; its limits are read from the controller).
+    (the SMC100 scales nothing by stage; its limits are read from the controller), and for
+    a plug-in protocol this catalogue has no models of (its stages are its own business;
+    the identity and limit checks at connect still apply).
     ``ValueError`` with the known models for a name this protocol does not know."""
+    if not known_models(protocol):
+        return None
     if not stage and protocol == "apt":
         stage = APT_DEFAULT_STAGE[units]
     if not stage and protocol == "smc100":
