@@ -6,6 +6,7 @@ tests may pass their own (e.g. a tracker projecting the simulated world's corner
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -102,6 +103,27 @@ def expected_holder_px(cfg: AligndConfig) -> tuple[float, float] | None:
     return (max(a, b) * 1000.0 / px, min(a, b) * 1000.0 / px)
 
 
+SIZE_TOLERANCE = 0.12  # a detection this far off the holder's expected size is not it
+
+
+def size_checked(c: Corners, expected_px: tuple[float, float],
+                 tolerance: float = SIZE_TOLERANCE) -> Corners:
+    """``c``, or not ok with the reason when its sides are more than ``tolerance`` off the
+    holder's expected long and short side (px): a rectangle of another size is never taken
+    for the holder."""
+    p = np.asarray(c.corners_px, float)
+    sides = np.linalg.norm(p - np.roll(p, -1, axis=0), axis=1)
+    pair_a, pair_b = (sides[0] + sides[2]) / 2, (sides[1] + sides[3]) / 2
+    long_px, short_px = max(pair_a, pair_b), min(pair_a, pair_b)
+    if (abs(long_px / expected_px[0] - 1) <= tolerance
+            and abs(short_px / expected_px[1] - 1) <= tolerance):
+        return c
+    return Corners(c.corners_px, False, c.quality,
+                   f"rectangle of {long_px:.0f} x {short_px:.0f} px where holder.size_mm and "
+                   f"the pixel size expect {expected_px[0]:.0f} x {expected_px[1]:.0f} px "
+                   f"(+-{100 * tolerance:.0f} %): not the holder")
+
+
 def as_corners(det: Detection) -> Corners:
     """Normalise a holder detection; corners that are not four finite points are not ok."""
     ok = bool(det.ok)
@@ -137,12 +159,19 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     def track(frame: Frame) -> Corners:
         hint = last[0] if last else None
         try:
-            det = vision.track_holder(frame.gray, expected_size_px=expected, hint=hint)
+            det = vision.track_holder(frame.gray, hint=hint)
         except VisionError as exc:
             return Corners(np.full((4, 2), np.nan), False, 0.0, str(exc))
         out = as_corners(det)
+        if out.ok and expected is not None:
+            out = size_checked(out, expected)
         if out.ok:
             last[:] = [out.corners_px]
+            # the previous frame seeds the search, not the corners' order: that stays the
+            # image's own (top-left first), as the sweeps and the calibration expect; a
+            # seed from the end of the last sweep (up to twice the sweep away) would rotate
+            # the labels of a whole sweep
+            out = dataclasses.replace(out, corners_px=vision.order_corners(out.corners_px))
         return out
 
     def solve(angles: np.ndarray, points: np.ndarray,
