@@ -42,9 +42,10 @@ from alignd.config import AligndConfig, load_config  # noqa: E402
 from alignd.procedures import Tools, default_tools, run_alignment  # noqa: E402
 from alignd.procedures.commission import CommissionRecord, run_commission  # noqa: E402
 from alignd.procedures.tools import Corners, SideInfo, as_corners  # noqa: E402
+from alignd.simulated import build_direct_rig  # noqa: E402
 from alignd.vision.holder import order_corners  # noqa: E402
 from drivers.camera import Frame  # noqa: E402
-from drivers.sim.direct import build_direct_rig, scene_tracker  # noqa: E402
+from drivers.sim.direct import scene_tracker  # noqa: E402
 from drivers.sim.render import posed_world  # noqa: E402
 
 FRAME_TIME_S = 1 / 15  # a real camera's frame after a settled move (15 fps), for the estimate
