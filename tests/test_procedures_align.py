@@ -3,6 +3,7 @@ abort, clamping, check without translation moves, refusal on failed data, device
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 
@@ -60,10 +61,19 @@ def test_alignment_converges_to_the_true_axis(seed: int) -> None:
     # raw data: contract sweep files, one record per iteration, progress with offsets
     kinds = [s.kind for s in rec.sweeps]
     assert kinds[0] == "calibration" and kinds[-1] == "align"
-    for s in rec.sweeps[1:]:
+    # the first sweep is the configured one; every sweep after a move is to decide: over
+    # max_sweep_deg in verdict_sweep_steps steps, starting from the end nearer the table
+    p = cfg.procedure
+    directions = []
+    for k, s in enumerate(rec.sweeps[1:]):
         sw = parse_sweep(s.sweep_json)
-        assert sw.n_frames == cfg.procedure.sweep_steps and sw.n_features == 4
+        steps, half = (p.sweep_steps, p.sweep_deg) if k == 0 else (p.verdict_sweep_steps,
+                                                                   p.max_sweep_deg)
+        assert sw.n_frames == steps and sw.n_features == 4
+        assert np.abs(s.readback).max() == pytest.approx(half, abs=0.01)
         np.testing.assert_allclose(sw.angles_deg, s.readback)
+        directions.append(np.sign(s.readback[-1] - s.readback[0]))
+    assert all(a != b for a, b in itertools.pairwise(directions))
     assert rec.iterations[-1][1]["action"] == "done"
     assert any(e.phase == "sweep" and e.total == cfg.procedure.sweep_steps for e in events)
     assert events[-1].phase == "done" and events[-1].offset_norm_um is not None
@@ -251,15 +261,15 @@ def test_check_answers_from_one_sweep_and_counts_no_moves() -> None:
 
 
 def test_an_undecided_check_measures_better_before_answering() -> None:
-    # the sample 5.5 um off the axis: one +-10 deg sweep (U about 5.5 um) cannot decide,
-    # a better measurement can (the map's floor alone is about 3 um)
+    # the sample about 8.5 um off the axis: a check's one sweep over +-max_sweep_deg (U
+    # about 1.6 um) cannot decide; averaging more frames per step (the centre pooled) can
     cfg = full_turn_config(decision_rule="guarded")
     rig, world = scene_rig(cfg, 5)
     runout = commissioned(rig, cfg, 5)
     assert run_alignment(rig, cfg, tools=standin_tools(5), runout=runout).verdict == "aligned"
     tr = np.asarray(world.truth()["offset_um"], float)
     d = world.stage_directions()["x"]
-    want = 5.5
+    want = 8.0
     # move x by s so that |tr + s d| = want (the root of a quadratic in s)
     b, c = float(tr @ d), float(tr @ tr) - want**2
     s_um = -b + math.sqrt(b * b - c)
@@ -270,8 +280,9 @@ def test_an_undecided_check_measures_better_before_answering() -> None:
     res = run_check(rig, cfg, tools=standin_tools(6), runout=runout, recorder=rec)
     records = [r for _, r in rec.iterations]
     assert records[0]["action"] == "measure better", records[0]["decision"]["text"]
-    assert records[0]["next"] == "widening the sweep to +-20 deg"
-    assert records[1]["plan"]["half_deg"] == 20.0
+    assert records[0]["plan"]["half_deg"] == cfg.procedure.max_sweep_deg  # no ladder
+    assert records[0]["next"] == "averaging 2 frames per step"
+    assert records[1]["plan"]["frames_per_step"] == 2
     assert res.sweeps >= 2 and res.iterations == 0
     # later sweeps pool the centre: the uncertainty falls
     assert records[-1]["U_um"] < records[0]["U_um"]
@@ -329,3 +340,22 @@ def test_the_runout_map_takes_the_bearing_out_of_the_offset() -> None:
         U = m.U_um
     assert errors["raw"] > 4.0, errors
     assert errors["corrected"] < U < 2.5, (errors, U)  # U with the map's measured floor
+
+
+def test_a_sweep_keeps_one_corner_order_when_the_tracker_restarts_it() -> None:
+    """Over +-45 deg a tracker may restart its corner order; the sweep puts every frame back
+    in the order of the frame nearest 0 (else the target turns round the holder)."""
+    from alignd.procedures.sweep import SweepData, _one_corner_order, rot
+
+    angles = np.linspace(-45.0, 45.0, 11)
+    rect = np.array([[-20.0, -12.5], [20.0, -12.5], [20.0, 12.5], [-20.0, 12.5]]) * 6.5
+    true = np.array([rect @ rot(a).T + [640.0, 360.0] for a in angles])
+    seen = true.copy()
+    for i in (0, 1, 9, 10):  # the far frames: labels restarted
+        seen[i] = np.roll(true[i], 1 + i % 3, axis=0)
+    seen[4] = np.nan  # a missed frame stays missed
+    data = SweepData("align", 1, angles.tolist(), angles.tolist(), seen, [])
+    fixed = _one_corner_order(data)
+    ok = np.all(np.isfinite(seen), axis=(1, 2))
+    np.testing.assert_allclose(fixed[ok], true[ok])
+    assert np.all(np.isnan(fixed[4]))

@@ -271,7 +271,7 @@ class _Run:
             self.rig, self.cfg, self.tools, kind=kind, iteration=n, abort=self.abort,
             progress=self._progress_safe, recorder=self.recorder, pixel_size_um=px,
             pool=self.pool, floor_um=self.systematic_um, angle_map=self.angle_map,
-            runout=self.runout, plan=self.plan)
+            runout=self.runout, plan=self.plan, approach=self._approach())
         if warning:
             self._warn(warning)
             if "moved between sweeps" in warning:
@@ -297,16 +297,40 @@ class _Run:
                           + (rel * m.norm_um) ** 2)
         return m.norm_um - after
 
+    def _widest_deg(self) -> float:
+        """The widest sweep half-width allowed: ``procedure.max_sweep_deg`` inside the
+        turntable's soft limits (less the backlash pre-move and a margin)."""
+        tt = self.rig.axis("turntable").config
+        lim = tt.soft_limits
+        both = self.p.alternate_sweeps  # a pre-move past either end
+        room = min(-lim.min - (tt.backlash_approach if tt.approach == "+" or both else 0.0),
+                   lim.max - (tt.backlash_approach if tt.approach == "-" or both else 0.0))
+        return max(min(self.p.max_sweep_deg or self.p.sweep_deg, room - SOFT_LIMIT_MARGIN_DEG),
+                   self.p.sweep_deg)
+
+    def _verdict_plan(self) -> SweepPlan:
+        """The plan of a sweep that is to decide (a check's, the sweep after a correction
+        move under guarded acceptance): the widest allowed, because the map's floor falls
+        with the swept angle and a sweep that can decide saves the sweeps of the ladder.
+        Simple acceptance does not need a small U: the configured plan."""
+        if self.p.decision_rule != "guarded" or self.plan.half_deg >= self._widest_deg():
+            return self.plan
+        return SweepPlan(self._widest_deg(), self.p.verdict_sweep_steps or self.plan.steps,
+                         self.plan.frames_per_step)
+
+    def _approach(self) -> Literal["+", "-"] | None:
+        """The sweep's direction: from the end nearer the turntable (None: the axis' own)."""
+        if not self.p.alternate_sweeps:
+            return None
+        tt = self.rig.axis("turntable")
+        return "-" if tt.position() > 0.0 else "+"
+
     def _better_plan(self) -> SweepPlan | None:
         """The next step up in measurement quality within the limits, or None at the top:
         a wider sweep first (the centre's uncertainty falls with the swept angle), then
         more frames per step (the tracking noise falls with their root)."""
         cur = self.plan
-        tt = self.rig.axis("turntable").config
-        lim = tt.soft_limits
-        room = min(-lim.min - (tt.backlash_approach if tt.approach == "+" else 0.0),
-                   lim.max - (tt.backlash_approach if tt.approach == "-" else 0.0))
-        widest = min(self.p.max_sweep_deg or self.p.sweep_deg, room - SOFT_LIMIT_MARGIN_DEG)
+        widest = self._widest_deg()
         if cur.half_deg < widest - 1e-6:
             return SweepPlan(min(widest, 2.0 * cur.half_deg), cur.steps, cur.frames_per_step)
         if cur.frames_per_step < self.p.max_frames_per_step:
@@ -331,6 +355,8 @@ class _Run:
         need = abs(self.tol - m.norm_um)
         if self.p.decision_rule != "guarded" or 2.0 * u_floor < need:
             return ""
+        if self.plan.half_deg < self._widest_deg() - 1e-6:
+            return ""  # the map's floor falls with the swept angle: a wider sweep may decide
         fix = ("re-run alignctl commission" if self.runout is not None
                else "commission the rig (alignctl commission) for a runout map")
         return (f"the residual error motion alone gives U >= {2.0 * u_floor:.1f} um, more "
@@ -419,6 +445,7 @@ class _Run:
             self._warn(f"pre-check: {msg}")
 
     def _check(self) -> tuple[Verdict, str, Measurement]:
+        self.plan = self._verdict_plan()  # one sweep that can decide, not a ladder
         while True:
             m = self._measure("check")
             if m.sigma_centre_um > self.p.max_center_sigma_um:
@@ -527,6 +554,10 @@ class _Run:
                     raise _Stop("not_converged", f"{reason} (offset {m.norm_um:.1f} um)", m)
             ds_actual, move_rec = self._correct(cal, m, self.st.iterations + 1)
             self.st.iterations += 1
+            nxt = self._verdict_plan()  # the sweep after a move is the verdict's candidate
+            if nxt != self.plan:
+                self.plan = nxt
+                move_rec["next"] = f"the sweep after the move over +-{nxt.half_deg:g} deg"
             self._record("align", m, **extra, action="move", **move_rec)
             prev, ds_prev, extra = m, ds_actual, {}
             m = self._measure("align")
