@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import math
 import threading
+from typing import Any
 
 import numpy as np
 import pytest
@@ -75,6 +76,7 @@ def test_alignment_converges_to_the_true_axis(seed: int) -> None:
         directions.append(np.sign(s.readback[-1] - s.readback[0]))
     assert all(a != b for a, b in itertools.pairwise(directions))
     assert rec.iterations[-1][1]["action"] == "done"
+    assert res.details["runout_refresh"] is None  # the map fits: no false alarm
     assert any(e.phase == "sweep" and e.total == cfg.procedure.sweep_steps for e in events)
     assert events[-1].phase == "done" and events[-1].offset_norm_um is not None
     # the turntable is parked at zero afterwards
@@ -359,3 +361,55 @@ def test_a_sweep_keeps_one_corner_order_when_the_tracker_restarts_it() -> None:
     ok = np.all(np.isfinite(seen), axis=(1, 2))
     np.testing.assert_allclose(fixed[ok], true[ok])
     assert np.all(np.isnan(fixed[4]))
+
+
+def _stale_map_rig(limit_deg: float = 169.0) -> tuple[Any, Any, Any, Any]:
+    """A rig commissioned with a 3 um bearing whose error motion then changed (turned in
+    phase, as after a bearing was re-seated): the map no longer fits it. ``limit_deg``: the
+    turntable's soft limits after commissioning (a cable wrap added since)."""
+    cfg = full_turn_config(decision_rule="guarded")
+    world_cfg = cfg.sim.world.model_copy(update={"wobble_um": 3.0})  # type: ignore[union-attr]
+    cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(  # type: ignore[union-attr]
+        update={"world": world_cfg})})
+    rig, world = scene_rig(cfg, 1)
+    runout = commissioned(rig, cfg, 1)
+    world.wobble_phase = world.wobble_phase + np.array([2.0, 1.5])
+    tt = rig.axis("turntable")
+    tt.config = tt.config.model_copy(update={"soft_limits": tt.config.soft_limits.model_copy(
+        update={"min": -limit_deg, "max": limit_deg})})
+    return cfg, rig, world, runout
+
+
+def test_sweeps_that_disagree_with_the_runout_map_refresh_it() -> None:
+    # with the stale map the run ends "aligned" about 9 um off the axis, claiming U 4.4 um
+    cfg, rig, world, runout = _stale_map_rig()
+    res = run_alignment(rig, cfg, tools=standin_tools(1), runout=runout)
+    out = res.to_json()
+    refresh = res.details["runout_refresh"]
+    assert refresh is not None and refresh["refreshed"], res.details["warnings"]
+    assert any("refreshed the runout map" in w and "re-run alignctl commission" in w
+               for w in res.details["warnings"])
+    assert out["verdict"] == "aligned", out["reason"]
+    truth = out["truth"]["offset_um"]
+    assert math.hypot(out["offset_um"][0] - truth[0], out["offset_um"][1] - truth[1]) \
+        <= out["U_um"]
+    assert out["truth"]["offset_norm_um"] <= 5.0
+    # the run's map is the refreshed one (the new bearing's)
+    new = np.asarray(res.details["runout_map"]["offset_um"])
+    angles = np.asarray(res.details["runout_map"]["angles_deg"])
+    bearing = np.array([world.wobble_mm(a) for a in angles]) * 1000.0
+    assert np.abs(new - bearing).max() < 1.0
+
+
+def test_a_stale_runout_map_that_cannot_be_refreshed_asks_for_commissioning() -> None:
+    cfg, rig, _world, runout = _stale_map_rig(limit_deg=100.0)  # 200 deg: too little to map
+    res = run_alignment(rig, cfg, tools=standin_tools(1), runout=runout)
+    refresh = res.details["runout_refresh"]
+    assert refresh is not None and not refresh["refreshed"]
+    assert "soft limits allow +-99 deg" in refresh["note"]
+    assert any("re-run alignctl commission" in w for w in res.details["warnings"])
+    # the known-wrong map is dropped: the assumed floor cannot show 10 um guarded, so the
+    # run says so instead of "aligned" about 9 um off the axis
+    assert res.details["runout_map"] is None
+    assert res.verdict == "out_of_tolerance" and "not shown within" in res.reason
+    assert "commission" in res.reason

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from alignd.config import AligndConfig
 from alignd.errors import AligndError, ConfigError, DeviceError, StateError, VisionError
@@ -40,8 +41,15 @@ from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.result import RunResult, Verdict
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
-from alignd.procedures.runout import RunoutMap
-from alignd.procedures.sweep import CentrePool, Measurement, SweepPlan, grab_fresh, measure
+from alignd.procedures.runout import WELL_SEPARATED_DEG, RunoutMap
+from alignd.procedures.sweep import (
+    CentrePool,
+    Measurement,
+    SweepPlan,
+    grab_fresh,
+    measure,
+    sweep_runout,
+)
 from alignd.procedures.tools import Tools, default_tools
 from alignd.textfmt import identity_text
 
@@ -59,6 +67,14 @@ HOLDER_LOOK_FRAMES = 3
 # map (``alignctl commission``) each sweep is corrected and the floor is measured.
 SOFT_LIMIT_MARGIN_DEG = 0.1
 MAX_CENTRE_JUMPS = 2  # a centre that jumps once may be a bump; twice, something is loose
+# the sweeps disagree with the runout map: the pooled centres' chi-square beyond this
+# quantile in MAP_DISAGREE_SWEEPS consecutive sweeps (or one centre jump with a map)
+MAP_DISAGREE_P = 0.99
+MAP_DISAGREE_SWEEPS = 2
+# a refresh maps the error motion in the run: over at least this span (the harmonics
+# separate from the axis and the arm, runout.WELL_SEPARATED_DEG), in these steps
+REFRESH_STEP_DEG = 10.0
+REFRESH_MAX_HALF_DEG = 165.0
 
 
 class _Stop(AligndError):
@@ -85,6 +101,8 @@ class _State:
     compute_s: float = 0.0
     motion_s: float = 0.0
     centre_jumps: int = 0  # sweeps whose centre disagreed with the pool (axis cannot move)
+    map_disagree: int = 0  # consecutive sweeps whose centres disagreed with the runout map
+    runout_refresh: dict[str, Any] | None = None  # what a refresh (or its refusal) found
 
 
 def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
@@ -221,6 +239,7 @@ class _Run:
             "budget": None if final is None else final.budget.to_dict(),
             "decision": None if final is None else self._decision(final).to_dict(),
             "runout_map": None if self.runout is None else self.runout.to_json(),
+            "runout_refresh": self.st.runout_refresh,
             "moves": self.st.iterations, "sweeps": self.st.sweeps,
             "compute_s": self.st.compute_s, "motion_s": self.st.motion_s,
             "tools": (self.tools.names if self.tools else None),
@@ -276,6 +295,9 @@ class _Run:
             self._warn(warning)
             if "moved between sweeps" in warning:
                 self.st.centre_jumps += 1
+        if self.runout is not None and self._map_disagrees(warning) and self._refresh_runout():
+            self.st.compute_s += m.compute_s
+            return self._measure(kind)  # the centre again, with the refreshed map
         self.st.compute_s += m.compute_s
         self.st.motion_s += m.timings.get("motion_s", 0.0)
         self.st.last = m
@@ -283,6 +305,64 @@ class _Run:
         self._emit("solve", f"{kind} sweep {n}: {d.text()} (centre over {m.n_sweeps} "
                    f"sweep(s))", m=m, iteration=n)
         return m
+
+    def _map_disagrees(self, warning: str) -> bool:
+        """Whether the sweeps disagree with the runout map: the chi-square of the pooled
+        centres beyond its ``MAP_DISAGREE_P`` quantile in ``MAP_DISAGREE_SWEEPS``
+        consecutive sweeps, or a centre that jumped (the axis cannot move; a map that no
+        longer fits the bearing biases sweeps of different widths differently)."""
+        pooled = self.pool.pooled()
+        dof = 2 * (pooled.n_sweeps - 1)
+        beyond = dof > 0 and pooled.chi2 > float(chi2_dist.ppf(MAP_DISAGREE_P, dof))
+        jumped = "moved between sweeps" in warning
+        self.st.map_disagree = self.st.map_disagree + 1 if beyond or jumped else 0
+        return self.st.runout_refresh is None and (
+            jumped or self.st.map_disagree >= MAP_DISAGREE_SWEEPS)
+
+    def _refresh_runout(self) -> bool:
+        """Map the error motion again in this run (once) with a sweep over most of a turn,
+        or, where the soft limits or the conventions forbid it, drop the map (the assumed
+        floor stands in) and say that the rig needs commissioning again. Either way the
+        pool starts over (its centres were corrected with the old map) and the caller
+        measures again."""
+        assert self.tools is not None and self.runout is not None
+        why = (f"the sweeps disagree with the runout map (chi-square of their centres beyond "
+               f"its {100 * MAP_DISAGREE_P:g} % point in {self.st.map_disagree} consecutive "
+               "sweeps, or a centre jump): the turntable's error motion has changed since "
+               "commissioning")
+        tt = self.rig.axis("turntable").config
+        lim = tt.soft_limits
+        half = min(REFRESH_MAX_HALF_DEG, -lim.min - tt.backlash_approach - SOFT_LIMIT_MARGIN_DEG,
+                   lim.max - tt.backlash_approach - SOFT_LIMIT_MARGIN_DEG)
+        plain = self.angle_map.sign == 1 and abs(self.angle_map.scale - 1.0) < 1e-3
+        if 2 * half < WELL_SEPARATED_DEG or not plain:
+            cause = (f"the turntable's soft limits allow +-{half:.0f} deg, too little to map it "
+                     f"here (at least {WELL_SEPARATED_DEG:g} deg)" if plain else
+                     "this rig's turntable conventions are the commission record's")
+            self.st.runout_refresh = {"refreshed": False, "reason": why, "note": cause}
+            self._warn(f"{why}; {cause}: the map is no longer used in this run (the error "
+                       f"motion is the assumed procedure.systematic_um "
+                       f"{self.systematic_um:g} um); re-run alignctl commission")
+            self.runout = None  # a map known to be wrong would bias every verdict
+            self.pool = CentrePool()
+            return True
+        self._emit("sweep", f"{why}; refreshing the runout map over +-{half:.0f} deg")
+        old = self.runout
+        new = sweep_runout(self.rig, self.cfg, self.tools, half_deg=half,
+                           step_deg=REFRESH_STEP_DEG, frames_per_step=2, abort=self.abort,
+                           progress=self._progress_safe, recorder=self.recorder)
+        self.runout = new
+        self.pool = CentrePool()
+        self.st.map_disagree = 0
+        self.st.runout_refresh = {"refreshed": True, "reason": why, "half_deg": half,
+                                  "old_amplitude_um": old.amplitude_um,
+                                  "new_amplitude_um": new.amplitude_um,
+                                  "new_residual_um": new.residual_um}
+        self._warn(f"{why}: refreshed the runout map from a +-{half:.0f} deg sweep (peak "
+                   f"{old.amplitude_um:.1f} -> {new.amplitude_um:.1f} um) and measured the "
+                   "centre again; the refreshed map serves this run only: re-run alignctl "
+                   "commission to keep it")
+        return True
 
     def _decision(self, m: Measurement) -> Decision:
         return decide(m.norm_um, m.U_um, self.tol, self.p.decision_rule)
