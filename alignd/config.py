@@ -102,6 +102,12 @@ class ProcedureConfig(Strict):
         "approached from one side, so the backlash stays out; only a constant angle offset "
         "of the backlash differs, which does not move the centre); false: always in the "
         "axis' approach direction (a return to the start before each sweep)"))
+    predict_after_small_move: bool = Field(True, description=(
+        "end an alignment without a sweep after its last correction move when that move "
+        "was small (the calibration's scale error on it below half stage_repeatability_um) "
+        "and the offset predicted after it, with the stages' landing scatter added to the "
+        "budget, is within under the decision rule with U at most target_u_fraction of the "
+        "tolerance; false: a verification sweep after every move"))
     systematic_um: float = Field(3.0, ge=0, description=(
         "per-axis error-motion floor assumed when no runout map is available (with a map "
         "the floor is the map's uncertainty plus the scatter between repeated sweeps)"))

@@ -20,6 +20,7 @@ or a device error stops every axis. The simulator's truth is read only after the
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -34,6 +35,7 @@ from scipy.stats import chi2 as chi2_dist
 from alignd.config import AligndConfig
 from alignd.errors import AligndError, ConfigError, DeviceError, StateError, VisionError
 from alignd.procedures.angles import AngleMap
+from alignd.procedures.budget import Contribution
 from alignd.procedures.calibrate import Calibration, calibrate, configured_pixel_size_um
 from alignd.procedures.commission import CommissionRecord
 from alignd.procedures.decision import Decision, decide
@@ -305,6 +307,46 @@ class _Run:
         self._emit("solve", f"{kind} sweep {n}: {d.text()} (centre over {m.n_sweeps} "
                    f"sweep(s))", m=m, iteration=n)
         return m
+
+    def _predicted(self, cal: Calibration, m: Measurement,
+                   ds: np.ndarray) -> Measurement | None:
+        """The offset after a small move, predicted from the measurement before it, when
+        that decides (else None: a sweep must measure it).
+
+        Small: the calibration's scale error on the move is below half the stages'
+        repeatability, so the stages' landing scatter is what the move adds to the
+        measurement's uncertainty: the measured position holds the old landing error and
+        the move replaces it by a new one, ``stage_repeatability_um`` times sqrt(2) per
+        axis (the budget's "stage repeatability"). Decides: within under the decision
+        rule, U at most ``target_u_fraction`` of the tolerance, and no further move would
+        gain more than the repeatability."""
+        rep = self.p.stage_repeatability_um
+        if not self.p.predict_after_small_move or self.p.decision_rule != "guarded":
+            return None
+        moved_px = cal.predict(ds)
+        moved_um = float(np.hypot(*moved_px)) / m.scale_px_per_mm * 1000.0
+        u_scale = cal.sigma_rel * moved_um
+        if u_scale > 0.5 * rep:
+            return None
+        off_px = m.offset_px + moved_px
+        # the measured position holds the old landing error, the new one replaces it:
+        # the change is off by both, rep sqrt(2) per axis
+        add = (2.0 * rep**2 + u_scale**2 / 2.0) * np.eye(2)
+        landing = Contribution("stage repeatability", math.sqrt(float(np.trace(add))), "B",
+                               f"landing scatter of the last move ({rep:g} um x sqrt 2 per axis; "
+                               f"the verdict is predicted after a {moved_um:.1f} um move)")
+        items = (*(c for c in m.budget.items if c.name != "stage repeatability"), landing)
+        pred = dataclasses.replace(
+            m, offset_px=off_px, offset_um=off_px / m.scale_px_per_mm * 1000.0,
+            cov_offset_um2=m.cov_offset_um2 + add,
+            budget=dataclasses.replace(m.budget, items=items), predicted=True,
+            moved_um=moved_um)
+        pred.p_within = None
+        d = self._decision(pred)
+        if (not d.conforms or pred.U_um > self.p.target_u_fraction * self.tol
+                or self._gain(pred) > rep):
+            return None
+        return pred
 
     def _map_disagrees(self, warning: str) -> bool:
         """Whether the sweeps disagree with the runout map: the chi-square of the pooled
@@ -634,6 +676,14 @@ class _Run:
                     raise _Stop("not_converged", f"{reason} (offset {m.norm_um:.1f} um)", m)
             ds_actual, move_rec = self._correct(cal, m, self.st.iterations + 1)
             self.st.iterations += 1
+            pred = self._predicted(cal, m, ds_actual)
+            if pred is not None:  # the move was small and its outcome decides: no sweep
+                self._record("align", m, **extra, action="move", **move_rec,
+                             next="verdict predicted after the move")
+                self.st.last = pred
+                return ("aligned", f"{self._decision(pred).text()}; predicted after the "
+                        f"last move of {pred.moved_um:.1f} um (the stages' landing scatter "
+                        f"in U); {self._tally()}", pred)
             nxt = self._verdict_plan()  # the sweep after a move is the verdict's candidate
             if nxt != self.plan:
                 self.plan = nxt

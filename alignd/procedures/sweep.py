@@ -248,6 +248,8 @@ class Measurement:
     plan: SweepPlan | None = None
     runout_corrected: bool = False
     excess_um: float = 0.0  # between-sweep scatter beyond the fits' own (1 sigma per axis)
+    predicted: bool = False  # the offset after a small move, predicted (no sweep after it)
+    moved_um: float = 0.0  # that move's length
 
     @property
     def norm_um(self) -> float:
@@ -285,6 +287,7 @@ class Measurement:
             "p_within": self.p_within, "sigma_random_um": self.sigma_random_um,
             "plan": None if self.plan is None else self.plan.to_dict(),
             "runout_corrected": self.runout_corrected, "excess_um": self.excess_um,
+            "predicted": self.predicted, "moved_um": self.moved_um,
         }
 
 
