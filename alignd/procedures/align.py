@@ -69,10 +69,12 @@ HOLDER_LOOK_FRAMES = 3
 # map (``alignctl commission``) each sweep is corrected and the floor is measured.
 SOFT_LIMIT_MARGIN_DEG = 0.1
 MAX_CENTRE_JUMPS = 2  # a centre that jumps once may be a bump; twice, something is loose
-# the sweeps disagree with the runout map: the pooled centres' chi-square beyond this
-# quantile in MAP_DISAGREE_SWEEPS consecutive sweeps (or one centre jump with a map)
+# the sweeps disagree with the runout map: a wide sweep's centre against the narrower
+# sweeps' beyond this chi-square quantile in MAP_DISAGREE_SWEEPS consecutive sweeps (or one
+# centre jump with a map)
 MAP_DISAGREE_P = 0.99
 MAP_DISAGREE_SWEEPS = 2
+MAP_DISAGREE_P_ONCE = 0.999  # ... or beyond this quantile once
 # a refresh maps the error motion in the run: over at least this span (the harmonics
 # separate from the axis and the arm, runout.WELL_SEPARATED_DEG), in these steps
 REFRESH_STEP_DEG = 10.0
@@ -161,6 +163,11 @@ class _Run:
         self.systematic_um = (cfg.procedure.systematic_um if systematic_um is None
                               else systematic_um)
         self.pool = CentrePool()
+        # the pool holds sweeps of one width: the runout map's residual biases the centres
+        # of different widths differently (more the narrower), so a wider sweep starts a
+        # new pool, and the narrower sweeps' centre is kept to test the map against
+        self.pool_half: float | None = None
+        self.narrow: tuple[np.ndarray, np.ndarray] | None = None  # centre, cov (image px)
         self.commission = commission
         if commission is not None:
             self.angle_map = commission.angle_map(f"commission run {commission.run_id}")
@@ -288,6 +295,12 @@ class _Run:
         n = self.st.sweeps
         px = (self.st.calibration.pixel_size_um if self.st.calibration is not None
               else configured_pixel_size_um(self.cfg))
+        if (self.pool_half is not None and self.plan.half_deg != self.pool_half
+                and self.pool.items and self.st.last is not None):
+            p = self.pool.pooled()
+            self.narrow = (p.center_px, p.cov_px2 + self._floor_px2(self.st.last))
+            self.pool = CentrePool()
+        self.pool_half = self.plan.half_deg
         _data, m, warning = measure(
             self.rig, self.cfg, self.tools, kind=kind, iteration=n, abort=self.abort,
             progress=self._progress_safe, recorder=self.recorder, pixel_size_um=px,
@@ -297,7 +310,8 @@ class _Run:
             self._warn(warning)
             if "moved between sweeps" in warning:
                 self.st.centre_jumps += 1
-        if self.runout is not None and self._map_disagrees(warning) and self._refresh_runout():
+        if self.runout is not None and self._map_disagrees(warning, m) \
+                and self._refresh_runout():
             self.st.compute_s += m.compute_s
             return self._measure(kind)  # the centre again, with the refreshed map
         self.st.compute_s += m.compute_s
@@ -348,18 +362,32 @@ class _Run:
             return None
         return pred
 
-    def _map_disagrees(self, warning: str) -> bool:
-        """Whether the sweeps disagree with the runout map: the chi-square of the pooled
-        centres beyond its ``MAP_DISAGREE_P`` quantile in ``MAP_DISAGREE_SWEEPS``
-        consecutive sweeps, or a centre that jumped (the axis cannot move; a map that no
-        longer fits the bearing biases sweeps of different widths differently)."""
-        pooled = self.pool.pooled()
-        dof = 2 * (pooled.n_sweeps - 1)
-        beyond = dof > 0 and pooled.chi2 > float(chi2_dist.ppf(MAP_DISAGREE_P, dof))
+    @staticmethod
+    def _floor_px2(m: Measurement) -> np.ndarray:
+        """The runout map's residual on a centre (the budget's residual error motion), as
+        a covariance in image px."""
+        s = m.budget.get("residual error motion") / 1000.0 * m.scale_px_per_mm
+        return (s * s / 2.0) * np.eye(2)
+
+    def _map_disagrees(self, warning: str, m: Measurement) -> bool:
+        """Whether the sweeps disagree with the runout map: a wide sweep's centre against
+        the narrower sweeps' (a map that no longer fits the bearing biases them
+        differently), beyond the ``MAP_DISAGREE_P`` quantile of chi-square with the fits'
+        and the map's own uncertainties in ``MAP_DISAGREE_SWEEPS`` consecutive sweeps, or
+        beyond ``MAP_DISAGREE_P_ONCE`` once; or a centre that jumped (the axis cannot
+        move)."""
+        beyond = far = False
+        if self.narrow is not None and self.pool.items:
+            c, cov, _ = self.pool.items[-1]
+            d = c - self.narrow[0]
+            S = self.narrow[1] + cov + self._floor_px2(m)
+            chi2 = float(d @ np.linalg.solve(S, d))
+            beyond = chi2 > float(chi2_dist.ppf(MAP_DISAGREE_P, 2))
+            far = chi2 > float(chi2_dist.ppf(MAP_DISAGREE_P_ONCE, 2))
         jumped = "moved between sweeps" in warning
         self.st.map_disagree = self.st.map_disagree + 1 if beyond or jumped else 0
         return self.st.runout_refresh is None and (
-            jumped or self.st.map_disagree >= MAP_DISAGREE_SWEEPS)
+            jumped or far or self.st.map_disagree >= MAP_DISAGREE_SWEEPS)
 
     def _refresh_runout(self) -> bool:
         """Map the error motion again in this run (once) with a sweep over most of a turn,
@@ -368,10 +396,11 @@ class _Run:
         pool starts over (its centres were corrected with the old map) and the caller
         measures again."""
         assert self.tools is not None and self.runout is not None
-        why = (f"the sweeps disagree with the runout map (chi-square of their centres beyond "
-               f"its {100 * MAP_DISAGREE_P:g} % point in {self.st.map_disagree} consecutive "
-               "sweeps, or a centre jump): the turntable's error motion has changed since "
-               "commissioning")
+        why = (f"the sweeps disagree with the runout map (wide and narrow sweeps' centres "
+               f"apart beyond the {100 * MAP_DISAGREE_P:g} % point of chi-square in "
+               f"{self.st.map_disagree} consecutive sweep(s), beyond the "
+               f"{100 * MAP_DISAGREE_P_ONCE:g} % point once, or a centre jump): the "
+               "turntable's error motion has changed since commissioning")
         tt = self.rig.axis("turntable").config
         lim = tt.soft_limits
         half = min(REFRESH_MAX_HALF_DEG, -lim.min - tt.backlash_approach - SOFT_LIMIT_MARGIN_DEG,
@@ -387,6 +416,7 @@ class _Run:
                        f"{self.systematic_um:g} um); re-run alignctl commission")
             self.runout = None  # a map known to be wrong would bias every verdict
             self.pool = CentrePool()
+            self.narrow = None
             return True
         self._emit("sweep", f"{why}; refreshing the runout map over +-{half:.0f} deg")
         old = self.runout
@@ -395,6 +425,7 @@ class _Run:
                            progress=self._progress_safe, recorder=self.recorder)
         self.runout = new
         self.pool = CentrePool()
+        self.narrow = None  # corrected with the old map
         self.st.map_disagree = 0
         self.st.runout_refresh = {"refreshed": True, "reason": why, "half_deg": half,
                                   "old_amplitude_um": old.amplitude_um,
