@@ -97,6 +97,10 @@ class ProcedureConfig(Strict):
         "steps of a sweep that is to decide under guarded acceptance (a check's, and every "
         "one after a correction move), which turns over max_sweep_deg: fewer, larger steps "
         "over a wider angle give a better centre in the same time; null: sweep_steps"))
+    verdict_frames_per_step: int = Field(2, ge=1, le=50, description=(
+        "frames averaged per step in a sweep that is to decide (as verdict_sweep_steps): a "
+        "frame costs a frame period, a step a turntable move; at least frames_per_step, at "
+        "most max_frames_per_step"))
     alternate_sweeps: bool = Field(True, description=(
         "start each sweep at whichever end is nearer the turntable (every step of a sweep "
         "approached from one side, so the backlash stays out; only a constant angle offset "

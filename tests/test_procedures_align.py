@@ -290,8 +290,9 @@ def test_an_undecided_check_measures_better_before_answering() -> None:
     records = [r for _, r in rec.iterations]
     assert records[0]["action"] == "measure better", records[0]["decision"]["text"]
     assert records[0]["plan"]["half_deg"] == cfg.procedure.max_sweep_deg  # no ladder
-    assert records[0]["next"] == "averaging 2 frames per step"
-    assert records[1]["plan"]["frames_per_step"] == 2
+    assert records[0]["plan"]["frames_per_step"] == cfg.procedure.verdict_frames_per_step
+    assert records[0]["next"] == "averaging 4 frames per step"
+    assert records[1]["plan"]["frames_per_step"] == 4
     assert res.sweeps >= 2 and res.iterations == 0
     # later sweeps pool the centre: the uncertainty falls
     assert records[-1]["U_um"] < records[0]["U_um"]

@@ -464,12 +464,17 @@ class _Run:
     def _verdict_plan(self) -> SweepPlan:
         """The plan of a sweep that is to decide (a check's, the sweep after a correction
         move under guarded acceptance): the widest allowed, because the map's floor falls
-        with the swept angle and a sweep that can decide saves the sweeps of the ladder.
-        Simple acceptance does not need a small U: the configured plan."""
-        if self.p.decision_rule != "guarded" or self.plan.half_deg >= self._widest_deg():
+        with the swept angle and a sweep that can decide saves the sweeps of the ladder;
+        ``verdict_frames_per_step`` frames a step (a frame costs a frame period, a step a
+        move). Simple acceptance does not need a small U: the configured plan."""
+        fps = max(self.plan.frames_per_step,
+                  min(self.p.verdict_frames_per_step, self.p.max_frames_per_step))
+        if self.p.decision_rule != "guarded" or (self.plan.half_deg >= self._widest_deg()
+                                                 and self.plan.frames_per_step >= fps):
             return self.plan
-        return SweepPlan(self._widest_deg(), self.p.verdict_sweep_steps or self.plan.steps,
-                         self.plan.frames_per_step)
+        steps = (self.plan.steps if self.plan.half_deg >= self._widest_deg()
+                 else self.p.verdict_sweep_steps or self.plan.steps)
+        return SweepPlan(max(self._widest_deg(), self.plan.half_deg), steps, fps)
 
     def _approach(self) -> Literal["+", "-"] | None:
         """The sweep's direction: from the end nearer the turntable (None: the axis' own)."""
