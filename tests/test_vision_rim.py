@@ -59,7 +59,7 @@ def test_fit_rim_eccentricity_and_zenith(e_target: float) -> None:
     assert f.center_px == pytest.approx(truth["center_px"], abs=0.05)
     assert f.axes_px == pytest.approx(truth["axes_px"], abs=0.05)
     assert f.camera_zenith_deg == pytest.approx(zen, abs=0.15 if e_target < 0.05 else 0.05)
-    assert f.rms_px < 0.1 and f.n_points > 1000
+    assert f.rms_px < 0.1 and f.n_points >= 100  # edge segments of ~12 px
 
 
 def test_zenith_from_ellipse_and_rectifier() -> None:
