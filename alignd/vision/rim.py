@@ -261,7 +261,7 @@ def _edge_support(gray: np.ndarray, k: np.ndarray, min_contrast: float, n: int =
     sign = 1.0 if np.median(step[fin]) > 0 else -1.0
     st = np.where(fin, sign * step, 0.0)
     med = float(np.median(st[st > 0])) if np.any(st > 0) else 0.0
-    good = (st >= max(min_contrast, 0.5 * med)) & (st <= 2.0 * med)
+    good = (st >= max(min_contrast, 0.3 * med)) & (st <= 3.0 * med)
     return float(good.mean())
 
 
@@ -527,6 +527,10 @@ def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float
     n_out = np.bincount(seg, weights=(d > 1.0).astype(float), minlength=K)
     usable = (counts >= max(0.7 * expect, 20)) & (n_in >= 0.3 * counts) & (
         n_out >= 0.3 * counts)
+    # a clipped (saturated or black) side flattens the step asymmetrically: leave it out
+    clipped = np.bincount(seg, weights=((val >= 254.5) | (val <= 0.5)).astype(float),
+                          minlength=K)
+    usable &= clipped <= 0.02 * counts
     ids = np.flatnonzero(present)
     st = starts[ids]
 
