@@ -199,11 +199,14 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
                     if inner.mean() < 0.6 or inner.sum() < 40:
                         continue
                     pts = pts[inner]
-                    fit = _robust_ellipse(pts)
+                    fit = _robust_ellipse(pts, min_cover=0.3)
                     if fit is None:
                         continue
                     k, keep = fit
-                    ctr, (a, b), ang = _conic_params(k)
+                    try:
+                        ctr, (a, b), ang = _conic_params(k)
+                    except (VisionError, np.linalg.LinAlgError):
+                        continue
                     if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
                         continue
                     par = np.array([ctr[0], ctr[1], a, b])
@@ -215,21 +218,21 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
         raise VisionError("rim image: no elliptical rim found")
     cands.sort(key=lambda c: -c[0])
     scored = []
-    for _n, _par, full in cands[:12]:
-        try:
-            k = fit_ellipse(full)
+    for _n, _par, full in cands[:10]:
+        try:  # each candidate moved onto the nearest strong step first (an arc's
+            # ellipse may be a few px off elsewhere)
+            k = _outer_crossings(gray, fit_ellipse(full), min_contrast)
             scored.append((_edge_support(gray, k, min_contrast), k))
         except (VisionError, np.linalg.LinAlgError):
             continue
     if not scored:
         raise VisionError("rim image: no elliptical rim found")
     top = max(sc for sc, _ in scored)
-    if top < 0.5:
+    if top < 0.65:  # the rim: 0.9 and more; contours that strayed: up to 0.55
         raise VisionError(f"rim image: no elliptical rim found (the best candidate's edge "
                           f"runs along only {100 * top:.0f} % of it)")
     near = [(k, _conic_params(k)[1][0]) for sc, k in scored if sc >= top - 0.05]
-    k = max(near, key=lambda t: t[1])[0]
-    return _outer_crossings(gray, k, min_contrast)
+    return max(near, key=lambda t: t[1])[0]
 
 
 def _edge_support(gray: np.ndarray, k: np.ndarray, min_contrast: float, n: int = 240
@@ -296,11 +299,12 @@ def _coverage(k: np.ndarray, pts: np.ndarray) -> float:
     return float(np.unique(((ang + np.pi) / (2 * np.pi) * 36).astype(int) % 36).size / 36)
 
 
-def _robust_ellipse(pts: np.ndarray, tol: float = 1.0
+def _robust_ellipse(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
                     ) -> tuple[np.ndarray, np.ndarray] | None:
     """An ellipse through much of ``pts`` (a contour): a fit to all of them, or, when
     something merged with the rim at this threshold, to the best of eight arcs, refitted
-    on its inliers. None unless the inliers cover half the ellipse within 1 px rms."""
+    on its inliers. None unless the inliers cover ``min_cover`` of the ellipse within
+    1 px rms."""
     n = len(pts)
     trials = [np.ones(n, bool)]
     if n >= 160:
@@ -315,7 +319,7 @@ def _robust_ellipse(pts: np.ndarray, tol: float = 1.0
         if fit is None:
             continue
         k, kp = fit
-        if _coverage(k, pts[kp]) < 0.5:
+        if _coverage(k, pts[kp]) < min_cover:
             continue
         if float(np.sqrt(np.mean(_sampson(k, pts[kp]) ** 2))) > 1.0:
             continue
