@@ -620,7 +620,7 @@ def _seg_scale(res: np.ndarray, seg: np.ndarray, K: int) -> np.ndarray:
     """Per-segment robust residual scale (1.4826 MAD about 0), floored by half the
     global one."""
     a = np.abs(res)
-    glob = float(np.median(a)) * 1.4826 + 1e-6
+    glob = float(np.median(a)) * 1.4826 + 0.3  # + a floor: noise-free frames
     loc = _seg_median(a, seg, K) * 1.4826
     return np.where(np.isfinite(loc), np.maximum(loc, 0.5 * glob), glob)
 
@@ -635,7 +635,7 @@ def _geometric_fit(p: Ellipse, xy: np.ndarray, sigma: np.ndarray, iterations: in
     (Gauss-Newton from a close start), with Tukey's biweight on the normalised residuals;
     returns the parameters and the inliers (within 3.5 robust sigma)."""
     p = np.array(p, float)
-    sig = np.maximum(sigma, 0.5 * float(np.median(sigma)))
+    sig = np.maximum(sigma, 0.5 * float(np.median(sigma)) + 0.002)
     z = np.zeros(len(xy))
     sc = 1.0
     for _ in range(iterations):
@@ -678,7 +678,7 @@ def _consistent(prof: _Profiles, min_contrast: float) -> np.ndarray:
     s_med = float(np.median(prof.width[ok]))
     ok &= (prof.width <= 1.6 * s_med + 0.3) & (prof.width >= 0.5 * s_med - 0.2)
     ok &= prof.rms <= 2.0 * float(np.median(prof.rms[ok])) + 1.0
-    ok &= prof.sigma <= 4.0 * float(np.median(prof.sigma[ok]))
+    ok &= prof.sigma <= 4.0 * float(np.median(prof.sigma[ok])) + 0.01
     return ok
 
 
