@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy.special import ndtr
 
 from alignd.vision.edges import Line
 
-__all__ = ["ProfileFit", "fit_vertical_edge"]
+__all__ = ["ProfileFit", "Spread", "fit_vertical_edge"]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
@@ -43,6 +44,7 @@ class ProfileFit:
     rms_dn: float
     rows: np.ndarray  # the rows used
     contrast: float  # median right minus left level (DN)
+    spread: Spread = "optics"
 
     @property
     def angle_deg(self) -> float:
@@ -65,15 +67,37 @@ class ProfileFit:
                     contrast=self.contrast)
 
 
-def _basis(u: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """F (the pixel-area integral of a Gaussian-blurred unit step, minus 1/2, at offset u),
-    dF/du, dF/ds, and the per-row basis [1, u, F, u F] (N, W, 4)."""
-    tp, tm = (u + 0.5) / s, (u - 0.5) / s
-    cp, cm = ndtr(tp), ndtr(tm)
-    pp, pm = _INV_SQRT_2PI * np.exp(-0.5 * tp * tp), _INV_SQRT_2PI * np.exp(-0.5 * tm * tm)
-    F = s * (tp * cp + pp - tm * cm - pm) - 0.5
+Spread = Literal["optics", "pixel grid"]
+_K = np.arange(-8, 9, dtype=np.float64)  # taps of a blur on the pixel grid (4 sigma at 2 px)
+
+
+def _basis(u: np.ndarray, s: float, spread: Spread = "optics"
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The step profile F (minus 1/2) at offset u, dF/du, dF/ds, and the per-row basis
+    [1, u, F, u F] (N, W, 4).
+
+    "optics": a Gaussian blur of width s before the pixels integrate (a lens); "pixel grid":
+    the pixel-integrated step blurred by a sampled Gaussian kernel afterwards (a filter in
+    the camera's processing, or a renderer), whose shape depends on the sub-pixel phase.
+    """
+    if spread == "optics":
+        tp, tm = (u + 0.5) / s, (u - 0.5) / s
+        cp, cm = ndtr(tp), ndtr(tm)
+        pp, pm = _INV_SQRT_2PI * np.exp(-0.5 * tp * tp), _INV_SQRT_2PI * np.exp(-0.5 * tm * tm)
+        F = s * (tp * cp + pp - tm * cm - pm) - 0.5
+        dFu, dFs = cp - cm, pp - pm
+    else:
+        e = np.exp(-0.5 * (_K / s) ** 2)
+        de = e * _K ** 2 / s ** 3
+        g = e / e.sum()
+        dg = (de - g * de.sum()) / e.sum()
+        t = u[..., None] - _K + 0.5  # (N, W, K)
+        ramp = np.clip(t, 0.0, 1.0)
+        F = ramp @ g - 0.5
+        dFu = ((t > 0.0) & (t < 1.0)).astype(np.float64) @ g
+        dFs = ramp @ dg
     B = np.stack([np.ones_like(u), u, F, u * F], axis=2)
-    return F, cp - cm, pp - pm, B
+    return F, dFu, dFs, B
 
 
 def _solve_rows(B: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -83,7 +107,8 @@ def _solve_rows(B: np.ndarray, Y: np.ndarray) -> np.ndarray:
 
 
 def _gauss_newton(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray,
-                  iterations: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  spread: Spread, iterations: int = 12
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Variable projection (Kaufman's Jacobian) for (a, b, s); returns p, residuals (N, W),
     the per-row coefficients (N, 4) and J^T J."""
     JtJ = np.eye(3)
@@ -91,7 +116,7 @@ def _gauss_newton(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray
     c = np.zeros((P.shape[0], 4))
     for it in range(iterations + 1):  # the last pass only evaluates J at the solution
         u = cols - (p[0] + p[1] * yc)[:, None]
-        F, dFu, dFs, B = _basis(u, p[2])
+        F, dFu, dFs, B = _basis(u, p[2], spread)
         c = _solve_rows(B, P[..., None])[..., 0]
         r = P - np.einsum("nwi,ni->nw", B, c)
         # derivatives of the model B c with respect to a, b, s (c held)
@@ -112,12 +137,13 @@ def _gauss_newton(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray
 
 def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
                       rows: np.ndarray, *, half_width: int = 7, blur0: float = 1.0,
-                      x_limits: tuple[int, int] | None = None,
-                      min_rows: int = 20) -> ProfileFit | None:
+                      x_limits: tuple[int, int] | None = None, min_rows: int = 20,
+                      spread: Spread = "optics") -> ProfileFit | None:
     """Fit the edge near x = a0 + b0 (y - y_mid) over ``rows`` (the start to about a pixel).
 
     Windows of 2 * half_width + 1 px, fixed by the start line, stay inside ``x_limits``
-    (x0, x1 exclusive; default the image). None when too few rows remain.
+    (x0, x1 exclusive; default the image). ``spread``: how the blur arises (see
+    :func:`_basis`). None when too few rows remain.
     """
     h, w = gray.shape
     lo, hi = x_limits if x_limits is not None else (0, w)
@@ -138,9 +164,9 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     r_all = np.zeros_like(P)
     coef = np.zeros((rows.size, 4))
     for _ in range(3):
-        x, _r, _c, JtJ = _gauss_newton(P[use], cols[use], yc[use], x)
+        x, _r, _c, JtJ = _gauss_newton(P[use], cols[use], yc[use], x, spread)
         u_all = cols - (x[0] + x[1] * yc)[:, None]
-        _F, _dFu, _dFs, B = _basis(u_all, x[2])
+        _F, _dFu, _dFs, B = _basis(u_all, x[2], spread)
         coef = _solve_rows(B, P[..., None])[..., 0]
         r_all = P - np.einsum("nwi,ni->nw", B, coef)
         res_rows = np.sqrt(np.mean(r_all ** 2, axis=1))
@@ -161,4 +187,4 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     cov = s2 * np.linalg.inv(JtJ)[:2, :2]
     return ProfileFit(a=float(x[0]), b=float(x[1]), y_mid=y_mid, cov_ab=cov,
                       blur_px=float(x[2]), rms_dn=math.sqrt(s2), rows=rows[use],
-                      contrast=float(np.median(coef[use, 2])))
+                      contrast=float(np.median(coef[use, 2])), spread=spread)

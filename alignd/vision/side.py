@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from alignd.errors import VisionError
-from alignd.vision.edge_profile import fit_vertical_edge
+from alignd.vision.edge_profile import Spread, fit_vertical_edge
 from alignd.vision.edges import (
     EdgePoints,
     Line,
@@ -217,6 +217,9 @@ def _roi_edges(image: np.ndarray, roi: tuple[int, int, int, int], what: str,
     return [_shifted(e, x0, y0) for e in edges]
 
 
+SPREADS: tuple[Spread, ...] = ("optics", "pixel grid")
+
+
 def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
               roi: tuple[int, int, int, int] | None, end_trim_rows: int = 10) -> SideEdge:
     """The edge re-measured as a blurred step over its rows (:mod:`edge_profile`); the
@@ -230,8 +233,11 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
     r1 = min(e.rows[1] - end_trim_rows, y1 - 5)
     y_mid = (e.rows[0] + e.rows[1]) / 2
     b = -float(e.line.n[1] / e.line.n[0])
-    fit = fit_vertical_edge(gray, float(e.line.minor_at(y_mid)), b, y_mid,
-                            np.arange(r0, r1 + 1), half_width=hw, x_limits=(x0, x1))
+    fits = [fit_vertical_edge(gray, float(e.line.minor_at(y_mid)), b, y_mid,
+                              np.arange(r0, r1 + 1), half_width=hw, x_limits=(x0, x1),
+                              spread=spread) for spread in SPREADS]
+    # the spread model that describes the edge better: residuals in DN over the same pixels
+    fit = min((f for f in fits if f is not None), key=lambda f: f.rms_dn, default=None)
     if fit is None:
         return e
     ln = fit.line()
