@@ -8,8 +8,10 @@ change it; a positive tilt means the sample's top leans further toward +x than t
 Method: Canny + Hough finds the near-vertical edges coarsely; each is then measured in every
 row it crosses with the area method (:mod:`alignd.vision.edges`) and fitted as a line
 x = a + b y. Edges spanning most of the image height belong to the pole (a rod seen from
-the side: two edges of opposite polarity); the shorter ones to the sample. The thesis'
-Canny + Hough angle (0.01 deg accumulator bins) is kept as :func:`baseline_tilt`.
+the side: two edges of opposite polarity); the shorter ones to the sample. The chosen pole
+and sample edges are measured again as blurred steps over all their rows
+(:mod:`alignd.vision.edge_profile`), free of the area method's bias under defocus. The
+thesis' Canny + Hough angle (0.01 deg accumulator bins) is kept as :func:`baseline_tilt`.
 """
 
 from __future__ import annotations

@@ -17,7 +17,8 @@ LSB or MSB aligned) and optionally a JPEG round trip (UVC cameras stream MJPEG).
 - :func:`random_side_scene`: the side camera. A narrow full-height pole and the sample's
   silhouette, in either order and either contrast, the sample spanning the full height or
   standing on a holder and a platform; uneven light; the regions of interest a config
-  would give.
+  would give. Drawn at 4 sub-columns per pixel and defocused before the pixels integrate
+  (a lens blurs the light, not the pixels).
 - :func:`random_rim_scene`: the turntable rim (e 0.01-0.2), brighter or darker than the
   floor, partly hidden by the holder, cables and shadows.
 
