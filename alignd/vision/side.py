@@ -240,7 +240,9 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
                               spread=spread) for spread in SPREADS]
     # the spread model that describes the edge better: residuals in DN over the same pixels
     fit = min((f for f in fits if f is not None), key=lambda f: f.rms_dn, default=None)
-    if fit is None:
+    # it refines the edge found, never moves to another one
+    if fit is None or abs(fit.a - float(e.line.minor_at(y_mid))) > 1.5 or abs(
+            fit.angle_deg - e.angle_deg) > 0.1:
         return e
     ln = fit.line()
     ln = replace(ln, rms_px=e.line.rms_px)
