@@ -25,6 +25,7 @@ from alignd.config import AligndConfig, HolderConfig
 from alignd.errors import SolveError, VisionError
 from alignd.procedures.angles import AngleMap, check_sweep_angles
 from alignd.procedures.budget import Budget, Contribution, u_of
+from alignd.procedures.continuous import frame_angles, run_continuous_sweep
 from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
@@ -185,6 +186,7 @@ class SweepData:
     track_s: float = 0.0
     grab_s: float = 0.0
     motion_s: float = 0.0
+    mode: Literal["step", "continuous"] = "step"  # continuous: angles are priors
 
     @property
     def tracked(self) -> np.ndarray:
@@ -435,7 +437,7 @@ def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration
         check_abort(abort)
         t0 = time.perf_counter()
         readback.append(tt.move_to(float(a)))
-        settled = time.monotonic()
+        settled = cam.clock.now()
         t1 = time.perf_counter()
         t_motion += t1 - t0
         found = []
@@ -645,9 +647,15 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     plan = plan or SweepPlan(p.sweep_deg, p.sweep_steps, frames_per_step)
     amap = angle_map or AngleMap(p.turntable_direction, 1.0, "config")
     holder = holder or cfg.holder
-    raw = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
-                    progress=progress, recorder=recorder,
-                    frames_per_step=plan.frames_per_step, angles=plan.angles())
+    if p.sweep_mode == "continuous":
+        raw = run_continuous_sweep(rig, cfg, tools, kind=kind, iteration=iteration,
+                                   abort=abort, progress=progress, recorder=recorder,
+                                   half_deg=plan.half_deg,
+                                   frames_per_step=plan.frames_per_step)
+    else:
+        raw = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
+                        progress=progress, recorder=recorder,
+                        frames_per_step=plan.frames_per_step, angles=plan.angles())
     data = dataclasses.replace(raw, readback_deg=amap.image_angles(raw.readback_deg).tolist())
     n_ok = int(data.tracked.sum())
     n = len(data.readback_deg)
@@ -669,8 +677,11 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
                                for i in np.flatnonzero(ok)]))
         pts = runout.correct_px(np.asarray(raw.readback_deg), pts, 1.0 / scale)
     rect = dataclasses.replace(data, points=pts)
+    if raw.mode == "continuous":  # each frame's angle from the images, the read-back its prior
+        rect = dataclasses.replace(rect, readback_deg=frame_angles(
+            np.asarray(data.readback_deg), pts).tolist())
     try:
-        centre = tools.solve(np.asarray(data.readback_deg), rect.points, pixel_size_um)
+        centre = tools.solve(np.asarray(rect.readback_deg), rect.points, pixel_size_um)
     except SolveError:
         raise
     except (ValueError, np.linalg.LinAlgError) as exc:

@@ -365,6 +365,13 @@ def undistort_points(pts: np.ndarray, camera: PinholeCamera, k1: float) -> np.nd
 
 
 # ---- image formation -------------------------------------------------------------------
+def finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
+           ) -> np.ndarray:
+    """Illumination, blur, sensor noise and quantisation of a float32 light image (a
+    camera that integrates several renders applies these once)."""
+    return _finish(img, opts, rng)
+
+
 def _finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
             ) -> np.ndarray:
     """Illumination, blur, noise and quantisation, applied in place where possible."""
