@@ -77,9 +77,10 @@ class PrecheckConfig(Strict):
 
 
 class ContinuousConfig(Strict):
-    """The continuous (on-the-fly) sweep: the turntable turns at constant speed while the
-    top camera streams; each frame's angle comes from the images (rigid fit), the
-    turntable's read-back at the frame's time serving as the prior."""
+    """The continuous (on-the-fly) sweep: the turntable turns while the top camera streams.
+
+    Each frame's angle comes from the images (rigid fit), the turntable's read-back at the
+    frame's time serving as the prior; the speed is checked against the motion blur."""
 
     speed_deg_s: float = Field(5.0, gt=0, le=90, description=(
         "turntable speed during the sweep (deg/s); more frames per step (when a run must "
@@ -149,7 +150,7 @@ class ProcedureConfig(Strict):
         "step: move, settle and grab at each of sweep_steps angles (the default); "
         "continuous: turn at procedure.continuous.speed_deg_s while the top camera "
         "streams, each frame's angle from the images"))
-    continuous: ContinuousConfig = Field(default_factory=ContinuousConfig, description=(
+    continuous: ContinuousConfig = Field(ContinuousConfig(), description=(
         "settings of the continuous sweep (sweep_mode: continuous)"))
 
     @field_validator("correction_axes")
@@ -311,6 +312,8 @@ def frame_keeper(cfg: AligndConfig) -> Callable[[str], bool]:
     angles = [-p.sweep_deg + i * 2 * p.sweep_deg / (p.sweep_steps - 1)
               for i in range(p.sweep_steps)]
     mid = min(range(p.sweep_steps), key=lambda i: abs(angles[i]))
+    if p.sweep_mode == "continuous":  # streamed frames: the one passing 0 deg
+        mid = round(p.sweep_deg / p.continuous.speed_deg_s * p.continuous.frame_rate_hz)
 
     def keep(label: str) -> bool:
         parts = label.split("-")
@@ -328,16 +331,21 @@ def run_footprint(cfg: AligndConfig) -> tuple[int, str]:
     """Disk space one run may need at most, and how that was reckoned (for messages).
 
     The frames dominate: an ``align`` may measure up to ``max_iterations`` times with a
-    verification sweep after each, every sweep ``sweep_steps x frames_per_step`` frames,
-    plus the calibration (2 stages x 4 positions, refreshed up to ``MAX_CAL_REFRESHES``
+    verification sweep after each, every sweep ``sweep_steps x frames_per_step`` frames
+    (a continuous sweep: every streamed frame over the widest sweep), plus the calibration (2 stages x 4 positions, refreshed up to ``MAX_CAL_REFRESHES``
     times). A frame file is a PNG, at most about its raw size: width x height, x3 for a
     real camera that may deliver colour. ``daemon.keep_frames`` says which are files."""
     from alignd.procedures.align import MAX_CAL_REFRESHES
 
     p = cfg.procedure
     sweeps = 2 * p.max_iterations
+    per_sweep = p.sweep_steps * p.frames_per_step
+    if p.sweep_mode == "continuous":  # every streamed frame, over the widest sweep
+        c = p.continuous
+        per_sweep = math.ceil((2 * max(p.max_sweep_deg or p.sweep_deg, p.sweep_deg) + 2)
+                              * p.frames_per_step / c.speed_deg_s * c.frame_rate_hz)
     if cfg.daemon.keep_frames == "all":
-        frames = sweeps * p.sweep_steps * p.frames_per_step + \
+        frames = sweeps * per_sweep + \
             (1 + MAX_CAL_REFRESHES) * 2 * 4 * p.frames_per_step
     elif cfg.daemon.keep_frames == "report":
         frames = sweeps

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from drivers.sim.clock import ManualClock
 from drivers.config import SimWorldConfig
 from drivers.sim.world import PinholeCamera, SideScene, TopScene, World
 
@@ -593,8 +594,9 @@ class _FixedAxis:
         self.p = self._P()
         self.p.travel_min = self.p.travel_max = mid
         self._pos = pos
+        self.clock = ManualClock()  # a parked world's time stands still
 
-    def load_position(self) -> float:
+    def load_position(self, at: float | None = None) -> float:
         return self._pos
 
 
