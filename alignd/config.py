@@ -332,9 +332,10 @@ def run_footprint(cfg: AligndConfig) -> tuple[int, str]:
 
     The frames dominate: an ``align`` may measure up to ``max_iterations`` times with a
     verification sweep after each, every sweep ``sweep_steps x frames_per_step`` frames
-    (a continuous sweep: every streamed frame over the widest sweep), plus the calibration (2 stages x 4 positions, refreshed up to ``MAX_CAL_REFRESHES``
-    times). A frame file is a PNG, at most about its raw size: width x height, x3 for a
-    real camera that may deliver colour. ``daemon.keep_frames`` says which are files."""
+    (a continuous sweep: every streamed frame over the widest sweep), plus the
+    calibration (2 stages x 4 positions, refreshed up to ``MAX_CAL_REFRESHES`` times).
+    A frame file is a PNG, at most about its raw size: width x height, x3 for a real
+    camera that may deliver colour. ``daemon.keep_frames`` says which are files."""
     from alignd.procedures.align import MAX_CAL_REFRESHES
 
     p = cfg.procedure

@@ -108,9 +108,9 @@ def test_blur_beyond_the_limit_is_refused_naming_the_keys() -> None:
 def run_continuous(seed: int) -> tuple[SweepData, Measurement, dict[str, Any], float]:
     """One continuous measurement on a world without bearing error motion (no runout map
     here to correct it) through the stand-in tracker (true corners + 0.01 px noise)."""
-    data = continuous_config()
-    data["sim"]["world"]["wobble_um"] = 0.0
-    cfg = parse_config(data, "sim")
+    raw_cfg = continuous_config()
+    raw_cfg["sim"]["world"]["wobble_um"] = 0.0
+    cfg = parse_config(raw_cfg, "sim")
     rig, world = scene_rig(cfg, seed)
     rig.connect()
     t0 = rig.axis("turntable").clock.now()

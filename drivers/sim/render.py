@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from drivers.sim.clock import ManualClock
 from drivers.config import SimWorldConfig
+from drivers.sim.clock import ManualClock
 from drivers.sim.world import PinholeCamera, SideScene, TopScene, World
 
 __all__ = [
