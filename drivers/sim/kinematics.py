@@ -182,7 +182,7 @@ class SimAxis:
             target = self.p.travel_max
             self._limit_on_arrival = "high"
         self._x0, self._x1, self._t0 = m, float(target), t
-        self._v = speed or self.p.speed
+        self._v = min(speed, self.p.speed) if speed else self.p.speed  # the motor's top speed
         self._land_error = float(self.rng.normal(0.0, self.p.repeatability)) \
             if self.p.repeatability > 0 else 0.0
 
