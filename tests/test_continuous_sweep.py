@@ -4,6 +4,7 @@ the blur limit, and a continuous measurement on the direct simulated rig (manual
 from __future__ import annotations
 
 import math
+import threading
 from typing import Any
 
 import numpy as np
@@ -13,7 +14,8 @@ from test_smc100 import CONNECT, home, make_emu, scripted_axis
 
 from alignd.config import continuous_speed, parse_config
 from alignd.errors import ConfigError
-from alignd.procedures import MemoryRecorder
+from alignd.procedures import MemoryRecorder, ProgressEvent
+from alignd.procedures.rig import AbortRequested
 from alignd.procedures.sweep import Measurement, SweepData, measure
 from alignd.simulated import build_direct_rig
 from drivers.errors import LimitError
@@ -132,3 +134,23 @@ def test_continuous_sweep_recovers_the_offset_deterministically() -> None:
     again, m2, _t, took2 = run_continuous(4)
     assert np.array_equal(m.offset_um, m2.offset_um) and took == took2
     assert again.readback_deg == data.readback_deg
+
+
+def test_abort_mid_sweep_stops_the_table_and_restores_its_speed() -> None:
+    cfg = parse_config(continuous_config(), "sim")
+    rig, _world = scene_rig(cfg, 5)
+    rig.connect()
+    tt = rig.axis("turntable")
+    abort = threading.Event()
+
+    def progress(ev: ProgressEvent) -> None:
+        abort.set()  # the first progress event comes from the stream's first frame
+
+    with pytest.raises(AbortRequested):
+        measure(rig, cfg, standin_tools(5), kind="measure", iteration=0, abort=abort,
+                progress=progress, recorder=MemoryRecorder(), pixel_size_um=160.0)
+    pos = tt.position()
+    assert -10.5 < pos < 0.0  # stopped early in the sweep
+    tt.clock.sleep(1.0)
+    assert not tt.status().moving and tt.position() == pos
+    assert tt.speed == tt.config.speed

@@ -81,36 +81,43 @@ def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str
         samples_a.append(here)
         tt.start_move(end)
         t_begin = clock.now()
+        # a stage that stops short ends the stream; end_move then says why
+        give_up = t_begin + (2.0 * abs(end - here) / speed + 2.0) / max(tt.config.time_scale,
+                                                                        1e-9)
         last_ts: float | None = None
-        for k in range(MAX_FRAMES):
-            check_abort(abort)
-            wait = t_begin + (k + 1) * period - clock.now()
-            if wait > 0:
-                clock.sleep(wait)
-            t1 = time.perf_counter()
-            frame = cam.grab(after=last_ts)
-            t2 = time.perf_counter()
-            samples_t.append(clock.now())
-            pos = tt.position()
-            samples_a.append(pos)
-            last_ts = frame.timestamp
-            det = tools.track(frame)
-            t3 = time.perf_counter()
-            t_grab += t2 - t1
-            t_track += t3 - t2
-            hashes.append(recorder.frame(frame.image, f"{kind}-{iteration}-{k:03d}-0"))
-            stamps.append(frame.timestamp)
-            points.append(det.corners_px if det.ok else np.full((4, 2), np.nan))
-            if k % 10 == 0:
-                progress(ProgressEvent("sweep" if kind != "verify" else "verify",
-                                       f"{kind} sweep (continuous) at {pos:+.3f} deg",
-                                       step=min(k + 1, n_expected), total=n_expected,
-                                       iteration=iteration))
-            if abs(pos - end) <= tt.config.deadband:
-                break
-        t4 = time.perf_counter()
-        tt.end_move(end, here)
-        t_motion += time.perf_counter() - t4
+        try:
+            for k in range(MAX_FRAMES):
+                check_abort(abort)
+                wait = t_begin + (k + 1) * period - clock.now()
+                if wait > 0:
+                    clock.sleep(wait)
+                t1 = time.perf_counter()
+                frame = cam.grab(after=last_ts)
+                t2 = time.perf_counter()
+                samples_t.append(clock.now())
+                pos = tt.position()
+                samples_a.append(pos)
+                last_ts = frame.timestamp
+                det = tools.track(frame)
+                t3 = time.perf_counter()
+                t_grab += t2 - t1
+                t_track += t3 - t2
+                hashes.append(recorder.frame(frame.image, f"{kind}-{iteration}-{k:03d}-0"))
+                stamps.append(frame.timestamp)
+                points.append(det.corners_px if det.ok else np.full((4, 2), np.nan))
+                if k % 10 == 0:
+                    progress(ProgressEvent("sweep" if kind != "verify" else "verify",
+                                           f"{kind} sweep (continuous) at {pos:+.3f} deg",
+                                           step=min(k + 1, n_expected), total=n_expected,
+                                           iteration=iteration))
+                if abs(pos - end) <= tt.config.deadband or clock.now() > give_up:
+                    break
+            t4 = time.perf_counter()
+            tt.end_move(end, here)
+            t_motion += time.perf_counter() - t4
+        except BaseException:
+            tt.stop()  # never leave the table turning (and its speed can then be restored)
+            raise
     prior = np.interp(stamps, samples_t, samples_a)
     log.info("%s sweep %d: %d frames over %.2f deg", kind, iteration, len(points),
              abs(end - start))
