@@ -12,11 +12,11 @@ import pytest
 from procedures_support import scene_rig, sim_config, standin_tools
 from test_smc100 import CONNECT, home, make_emu, scripted_axis
 
-from alignd.config import continuous_speed, parse_config
+from alignd.config import HolderConfig, continuous_speed, parse_config
 from alignd.errors import ConfigError
 from alignd.procedures import MemoryRecorder, ProgressEvent
 from alignd.procedures.rig import AbortRequested
-from alignd.procedures.sweep import Measurement, SweepData, measure
+from alignd.procedures.sweep import Measurement, SweepData, holder_pose, holder_poses, measure
 from alignd.simulated import build_direct_rig
 from drivers.errors import LimitError
 from drivers.sim.sim_camera import SimCamera
@@ -154,3 +154,16 @@ def test_abort_mid_sweep_stops_the_table_and_restores_its_speed() -> None:
     tt.clock.sleep(1.0)
     assert not tt.status().moving and tt.position() == pos
     assert tt.speed == tt.config.speed
+
+
+def test_vectorised_holder_poses_match_the_per_frame_pose() -> None:
+    rng = np.random.default_rng(1)
+    holder = HolderConfig(size_mm=(40.0, 25.0), target_mm=(0.0, -17.5))
+    corners = rng.normal(0, 30, (30, 4, 2)) + np.array([[0, 0], [250, 0], [250, 156],
+                                                        [0, 156]])
+    poses = holder_poses(corners, holder)
+    for i, c in enumerate(corners):
+        one = holder_pose(c, holder)
+        assert np.allclose(one.target_px, poses.target_px[i], rtol=0, atol=1e-9)
+        assert one.scale_px_per_mm == pytest.approx(poses.scale_px_per_mm[i], abs=1e-12)
+        assert one.angle_deg == pytest.approx(poses.angle_deg[i], abs=1e-9)
