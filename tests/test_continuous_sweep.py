@@ -4,11 +4,14 @@ the blur limit, and a continuous measurement on the direct simulated rig (manual
 from __future__ import annotations
 
 import math
+import struct
 import threading
 from typing import Any
 
 import numpy as np
 import pytest
+import test_apt
+import test_zaber
 from procedures_support import scene_rig, sim_config, standin_tools
 from test_smc100 import CONNECT, home, make_emu, scripted_axis
 
@@ -167,3 +170,24 @@ def test_vectorised_holder_poses_match_the_per_frame_pose() -> None:
         assert np.allclose(one.target_px, poses.target_px[i], rtol=0, atol=1e-9)
         assert one.scale_px_per_mm == pytest.approx(poses.scale_px_per_mm[i], abs=1e-12)
         assert one.angle_deg == pytest.approx(poses.angle_deg[i], abs=1e-9)
+
+
+def test_apt_set_speed_writes_velparams_and_reads_them_back() -> None:
+    # 0.5 mm/s on an MTS25-Z8 under a KDC101: 0.5 x 34304 counts/mm x T x 65536, T = 2048/6e6
+    reg = round(0.5 * 34304 * 2048 / 6e6 * 65536)
+    assert reg == 383684
+    payload = test_apt.H("01 00 00 00 00 00") + struct.pack("<ii", 1048, reg)
+    axis, fake = test_apt.connected([(test_apt.H("13 04 0e 00 d0 01") + payload, b""),
+                                     (test_apt.REQ_VEL, test_apt.H("15 04 0e 00 81 50")
+                                      + payload)])
+    axis.set_speed(0.5)
+    assert axis.speed == 0.5 and not fake.script
+
+
+def test_zaber_set_speed_writes_maxspeed_in_the_manuals_units() -> None:
+    # 2.5 mm/s at 0.047625 um per microstep: 52493.4 microsteps/s x 1.6384 = 86005
+    axis, tr = test_zaber.scripted_axis([
+        (test_zaber.manual_ck("/1 1 6 set maxspeed 86005"),
+         test_zaber.manual_ck("@01 1 06 OK IDLE -- 0"))])
+    axis.set_speed(2.5)
+    assert axis.speed == 2.5 and not tr.script
