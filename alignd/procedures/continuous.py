@@ -54,7 +54,9 @@ def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str
     assert cam is not None  # validate_rig guarantees it
     c = cfg.procedure.continuous
     speed, blur = continuous_speed(cfg, frames_per_step)
-    period = 1.0 / c.frame_rate_hz
+    # frames come at the camera's rate of simulated time: a time-scaled simulator (its
+    # axes' time_scale) runs the turn, and so the stream, that many times faster
+    period = 1.0 / c.frame_rate_hz / max(tt.config.time_scale, 1e-9)
     sign = 1.0 if tt.config.approach == "+" else -1.0
     # a lead-in of the acceleration distance each side, inside the soft limits
     lead = min(speed**2 / (2 * tt.config.accel), 1.0) if tt.config.accel > 0 else 0.0
