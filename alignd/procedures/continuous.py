@@ -9,7 +9,8 @@ comes from the images (the ``rigid`` fit estimates each frame's angle jointly wi
 centre); the read-back, sampled around every frame and interpolated at the frame's
 mid-exposure time, is the prior that starts that fit and fixes its common zero. So frames
 taken while the stage accelerates are as good as the others, and a camera timestamp a few
-milliseconds off costs nothing.
+milliseconds off costs nothing. Frames are tracked after the turn, so tracking never
+slows the stream.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
 from alignd.procedures.tools import Tools
+from drivers.camera import Frame
 
 if TYPE_CHECKING:
     from alignd.procedures.sweep import SweepData
@@ -70,6 +72,7 @@ def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str
     t_motion = time.perf_counter() - t0
     log.info("%s sweep %d: continuous %+.2f -> %+.2f deg at %.3g deg/s, %g fps, blur %.2f px",
              kind, iteration, start, end, speed, c.frame_rate_hz, blur)
+    frames: list[Frame] = []
     points: list[np.ndarray] = []
     stamps: list[float] = []
     hashes: list[str] = []
@@ -95,18 +98,12 @@ def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str
                     clock.sleep(wait)
                 t1 = time.perf_counter()
                 frame = cam.grab(after=last_ts)
-                t2 = time.perf_counter()
+                t_grab += time.perf_counter() - t1
                 samples_t.append(clock.now())
                 pos = tt.position()
                 samples_a.append(pos)
                 last_ts = frame.timestamp
-                det = tools.track(frame)
-                t3 = time.perf_counter()
-                t_grab += t2 - t1
-                t_track += t3 - t2
-                hashes.append(recorder.frame(frame.image, f"{kind}-{iteration}-{k:03d}-0"))
-                stamps.append(frame.timestamp)
-                points.append(det.corners_px if det.ok else np.full((4, 2), np.nan))
+                frames.append(frame)  # tracked after the turn: the stream is not slowed
                 if k % 10 == 0:
                     progress(ProgressEvent("sweep" if kind != "verify" else "verify",
                                            f"{kind} sweep (continuous) at {pos:+.3f} deg",
@@ -120,6 +117,14 @@ def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str
         except BaseException:
             tt.stop()  # never leave the table turning (and its speed can then be restored)
             raise
+    for k, frame in enumerate(frames):
+        check_abort(abort)
+        t2 = time.perf_counter()
+        det = tools.track(frame)
+        t_track += time.perf_counter() - t2
+        hashes.append(recorder.frame(frame.image, f"{kind}-{iteration}-{k:03d}-0"))
+        stamps.append(frame.timestamp)
+        points.append(det.corners_px if det.ok else np.full((4, 2), np.nan))
     prior = np.interp(stamps, samples_t, samples_a)
     log.info("%s sweep %d: %d frames over %.2f deg", kind, iteration, len(points),
              abs(end - start))
