@@ -98,9 +98,11 @@ def test_blur_beyond_the_limit_is_refused_naming_the_keys() -> None:
                 "procedure.continuous.max_blur_px", "cameras.top.pixel_size_um",
                 "on_blur: cap"):
         assert key in msg
-    # 20 deg/s x 0.02 s x (hypot(40, 25) / 2 + 5 mm) / 160 um
-    assert f"{math.radians(20) * 0.02 * (math.hypot(40, 25) / 2 + 5) * 1000 / 160:.2f} px" \
-        in msg
+    # 20 deg/s x 0.02 s x (hypot(40, 25) / 2 + 5 mm) / the top camera's pixel size
+    top = sim_config().camera("top")
+    assert top is not None and top.pixel_size_um is not None
+    blur = math.radians(20) * 0.02 * (math.hypot(40, 25) / 2 + 5) * 1000 / top.pixel_size_um
+    assert f"{blur:.2f} px" in msg
     capped = parse_config(continuous_config(speed_deg_s=20.0, exposure_s=0.02,
                                             on_blur="cap"), "rig.yaml")
     speed, blur = continuous_speed(capped)
