@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -41,13 +41,15 @@ MAX_FRAMES = 5000  # a stream that never reaches the end (a stage that stopped s
 def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str,
                          iteration: int, abort: threading.Event | None,
                          progress: ProgressCallback, recorder: RunRecorder, half_deg: float,
-                         frames_per_step: int = 1) -> SweepData:
+                         frames_per_step: int = 1,
+                         approach: Literal["+", "-"] | None = None) -> SweepData:
     """Turn from ``-half_deg`` to ``+half_deg`` at constant speed, tracking every frame.
 
     Returns the same ``SweepData`` as the step sweep: ``readback_deg`` holds each frame's
     read-back interpolated at its mid-exposure time (the prior; ``measure`` replaces it by
     the image angles), ``commanded_deg`` the same (nothing is commanded per frame).
-    ``frames_per_step`` > 1 turns that many times slower (more frames per degree).
+    ``frames_per_step`` > 1 turns that many times slower (more frames per degree);
+    ``approach`` turns it in that direction (default: the turntable's approach).
     """
     from alignd.procedures.sweep import SweepData
 
@@ -59,7 +61,7 @@ def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str
     # frames come at the camera's rate of simulated time: a time-scaled simulator (its
     # axes' time_scale) runs the turn, and so the stream, that many times faster
     period = 1.0 / c.frame_rate_hz / max(tt.config.time_scale, 1e-9)
-    sign = 1.0 if tt.config.approach == "+" else -1.0
+    sign = 1.0 if (approach or tt.config.approach) == "+" else -1.0
     # a lead-in of the acceleration distance each side, inside the soft limits
     lead = min(speed**2 / (2 * tt.config.accel), 1.0) if tt.config.accel > 0 else 0.0
     lo, hi = tt.config.soft_limits.min, tt.config.soft_limits.max
@@ -68,7 +70,10 @@ def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str
     clock = tt.clock
     t0 = time.perf_counter()
     check_abort(abort)
-    tt.move_to(start)
+    if approach is None:
+        tt.move_to(start)
+    else:
+        tt.move_to(start, approach)
     t_motion = time.perf_counter() - t0
     log.info("%s sweep %d: continuous %+.2f -> %+.2f deg at %.3g deg/s, %g fps, blur %.2f px",
              kind, iteration, start, end, speed, c.frame_rate_hz, blur)
