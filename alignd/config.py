@@ -6,6 +6,7 @@ A bad config fails at load with the file, the key path and the reason (``ConfigE
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
@@ -75,6 +76,39 @@ class PrecheckConfig(Strict):
     action: Literal["warn", "refuse"] = "warn"
 
 
+class ContinuousConfig(Strict):
+    """The continuous (on-the-fly) sweep: the turntable turns while the top camera streams.
+
+    Each frame's angle comes from the images (rigid fit), the turntable's read-back at the
+    frame's time serving as the prior; the speed is checked against the motion blur."""
+
+    speed_deg_s: float = Field(5.0, gt=0, le=90, description=(
+        "turntable speed during the sweep (deg/s); more frames per step (when a run must "
+        "measure better) divide it"))
+    frame_rate_hz: float = Field(30.0, gt=0, le=1000, description=(
+        "frames per second the top camera streams during the sweep"))
+    exposure_s: float = Field(0.005, gt=0, le=1, description=(
+        "the top camera's exposure time (s) while streaming; set the camera to it (the "
+        "simulated camera uses it)"))
+    max_blur_px: float = Field(0.5, gt=0, le=20, description=(
+        "the most motion blur at the holder's corners a frame may have (px): speed (rad/s) "
+        "x exposure_s x corner radius / pixel size"))
+    corner_radius_mm: float | None = Field(None, gt=0, description=(
+        "distance of the holder's farthest corner from the axis (mm) for the blur limit; "
+        "null: half the holder's diagonal plus procedure.max_step_mm"))
+    on_blur: Literal["refuse", "cap"] = Field("refuse", description=(
+        "refuse: a speed whose blur exceeds max_blur_px is a config error; cap: turn "
+        "slower, at the fastest speed within the limit"))
+
+    @model_validator(mode="after")
+    def _exposure(self) -> ContinuousConfig:
+        if self.exposure_s >= 1.0 / self.frame_rate_hz:
+            raise ValueError(f"exposure_s {self.exposure_s:g} s does not fit in a frame period "
+                             f"at frame_rate_hz {self.frame_rate_hz:g} "
+                             f"({1.0 / self.frame_rate_hz:g} s): lower one of them")
+        return self
+
+
 class ProcedureConfig(Strict):
     sweep_deg: float = Field(10.0, gt=0, le=45, description="sweep from -sweep_deg to +sweep_deg")
     sweep_steps: int = Field(21, ge=3, le=721)
@@ -132,6 +166,12 @@ class ProcedureConfig(Strict):
     pixel_size_tolerance: float = Field(0.15, gt=0, lt=1,
                                         description="accepted calibration/config disagreement")
     precheck: PrecheckConfig = PrecheckConfig()
+    sweep_mode: Literal["step", "continuous"] = Field("step", description=(
+        "step: move, settle and grab at each of sweep_steps angles (the default); "
+        "continuous: turn at procedure.continuous.speed_deg_s while the top camera "
+        "streams, each frame's angle from the images"))
+    continuous: ContinuousConfig = Field(ContinuousConfig(), description=(
+        "settings of the continuous sweep (sweep_mode: continuous)"))
 
     @field_validator("correction_axes")
     @classmethod
@@ -219,6 +259,11 @@ class AligndConfig(Strict):
             c.source == "sim" for c in self.cameras)
         if uses_sim and self.sim is None:
             raise ValueError("port/source 'sim' needs a 'sim:' section")
+        if self.procedure.sweep_mode == "continuous":
+            try:
+                continuous_speed(self)
+            except ConfigError as exc:
+                raise ValueError(str(exc)) from None
         return self
 
     def axis(self, role: str) -> tuple[ControllerConfig, int]:
@@ -230,6 +275,49 @@ class AligndConfig(Strict):
 
     def camera(self, role: str) -> CameraConfig | None:
         return next((c for c in self.cameras if c.role == role), None)
+
+
+def continuous_speed(cfg: AligndConfig, frames_per_step: int = 1) -> tuple[float, float]:
+    """The turntable speed (deg/s) of a continuous sweep and the motion blur (px) it gives at
+    the holder's corners: speed (rad/s) x ``exposure_s`` x the corners' radius from the axis
+    / the top camera's pixel size. ``frames_per_step`` > 1 (a run measuring better) turns
+    that many times slower.
+
+    Raises ``ConfigError`` naming the keys when the blur exceeds ``max_blur_px`` (unless
+    ``on_blur: cap``, which slows down to the limit), when no pixel size is known, or when
+    the speed is above the turntable's configured speed."""
+    c = cfg.procedure.continuous
+    key = "procedure.continuous"
+    cam = cfg.camera("top")
+    px_um = cam.pixel_size_um if cam is not None else None
+    if px_um is None and cfg.sim is not None:
+        px_um = cfg.sim.world.pixel_size_um
+    if px_um is None:
+        raise ConfigError("procedure.sweep_mode continuous needs cameras.top.pixel_size_um "
+                          "to check the motion blur (alignctl commission measures it)")
+    radius = c.corner_radius_mm
+    if radius is None:
+        radius = math.hypot(*cfg.holder.size_mm) / 2 + cfg.procedure.max_step_mm
+    px_per_rad_s = c.exposure_s * radius * 1000.0 / px_um  # blur (px) per rad/s
+    speed = c.speed_deg_s / max(frames_per_step, 1)
+    blur = math.radians(speed) * px_per_rad_s
+    if blur > c.max_blur_px:
+        v_max = math.degrees(c.max_blur_px / px_per_rad_s)
+        if c.on_blur == "refuse":
+            raise ConfigError(
+                f"{key}.speed_deg_s {speed:g} deg/s x {key}.exposure_s {c.exposure_s:g} s x "
+                f"corner radius {radius:.1f} mm ({key}.corner_radius_mm) / "
+                f"cameras.top.pixel_size_um {px_um:g} um = {blur:.2f} px of motion blur at "
+                f"the holder's corners, above {key}.max_blur_px {c.max_blur_px:g}: lower "
+                f"speed_deg_s to {v_max:.3g} deg/s or less, shorten exposure_s, or set "
+                f"{key}.on_blur: cap")
+        speed, blur = v_max, c.max_blur_px
+    _, i = cfg.axis("turntable")
+    top = cfg.axis("turntable")[0].axes[i].speed
+    if speed > top:
+        raise ConfigError(f"{key}.speed_deg_s {speed:g} deg/s is above the turntable's "
+                          f"configured speed {top:g} deg/s (controllers: axes: speed)")
+    return speed, blur
 
 
 def frame_keeper(cfg: AligndConfig) -> Callable[[str], bool]:
@@ -244,6 +332,8 @@ def frame_keeper(cfg: AligndConfig) -> Callable[[str], bool]:
     angles = [-p.sweep_deg + i * 2 * p.sweep_deg / (p.sweep_steps - 1)
               for i in range(p.sweep_steps)]
     mid = min(range(p.sweep_steps), key=lambda i: abs(angles[i]))
+    if p.sweep_mode == "continuous":  # streamed frames: the one passing 0 deg
+        mid = round(p.sweep_deg / p.continuous.speed_deg_s * p.continuous.frame_rate_hz)
 
     def keep(label: str) -> bool:
         parts = label.split("-")
@@ -261,16 +351,22 @@ def run_footprint(cfg: AligndConfig) -> tuple[int, str]:
     """Disk space one run may need at most, and how that was reckoned (for messages).
 
     The frames dominate: an ``align`` may measure up to ``max_iterations`` times with a
-    verification sweep after each, every sweep ``sweep_steps x frames_per_step`` frames,
-    plus the calibration (2 stages x 4 positions, refreshed up to ``MAX_CAL_REFRESHES``
-    times). A frame file is a PNG, at most about its raw size: width x height, x3 for a
-    real camera that may deliver colour. ``daemon.keep_frames`` says which are files."""
+    verification sweep after each, every sweep ``sweep_steps x frames_per_step`` frames
+    (a continuous sweep: every streamed frame over the widest sweep), plus the
+    calibration (2 stages x 4 positions, refreshed up to ``MAX_CAL_REFRESHES`` times).
+    A frame file is a PNG, at most about its raw size: width x height, x3 for a real
+    camera that may deliver colour. ``daemon.keep_frames`` says which are files."""
     from alignd.procedures.align import MAX_CAL_REFRESHES
 
     p = cfg.procedure
     sweeps = 2 * p.max_iterations
+    per_sweep = p.sweep_steps * p.frames_per_step
+    if p.sweep_mode == "continuous":  # every streamed frame, over the widest sweep
+        c = p.continuous
+        per_sweep = math.ceil((2 * max(p.max_sweep_deg or p.sweep_deg, p.sweep_deg) + 2)
+                              * p.frames_per_step / c.speed_deg_s * c.frame_rate_hz)
     if cfg.daemon.keep_frames == "all":
-        frames = sweeps * p.sweep_steps * p.frames_per_step + \
+        frames = sweeps * per_sweep + \
             (1 + MAX_CAL_REFRESHES) * 2 * 4 * p.frames_per_step
     elif cfg.daemon.keep_frames == "report":
         frames = sweeps

@@ -21,7 +21,8 @@ from alignd.config import AligndConfig, check_config_file
 
 __all__ = ["check_config_file", "json_schema", "reference_markdown"]
 
-UNITS = {"_um": "um", "_mm": "mm", "_deg": "deg", "_s": "s", "_px": "px", "_dn": "DN"}
+UNITS = {"_deg_s": "deg/s", "_hz": "Hz", "_um": "um", "_mm": "mm", "_deg": "deg", "_s": "s",
+         "_px": "px", "_dn": "DN"}
 
 
 # meanings of keys whose model field carries no description (kept here rather than

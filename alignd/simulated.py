@@ -55,9 +55,13 @@ def build_direct_rig(cfg: AligndConfig, seed: int | None = None, *,
     """
     sim = cfg.sim or SimConfig()
     used_seed = sim.seed if seed is None else seed
+    # the top camera exposes for the continuous sweep's exposure time (frames during
+    # motion smear over it); stop-and-go frames are instantaneous, as before
+    p = cfg.procedure
+    exposure = p.continuous.exposure_s if p.sweep_mode == "continuous" else 0.0
     parts = build_direct_axes(list(cfg.controllers), list(cfg.cameras), sim, used_seed,
                               clock=clock, homed=homed, camera_kind=camera_kind,
-                              render_opts=render_opts)
+                              render_opts=render_opts, exposure_s=exposure)
     rig = DirectRig(axes=dict(parts.axes), cameras=parts.cameras, truth=parts.world.truth,
                     name=f"{cfg.name} (direct sim, seed {used_seed})", sim_parts=parts)
     return rig, parts.world

@@ -19,7 +19,7 @@ targets:
   + one camera frame period (1/30 s) per frame grabbed; target < 40 s.
 
 Usage: ``python bench/closed_loop.py [--seeds 20] [--quick] [--tracker vision|standin]
-[--checks 50]``.
+[--checks 50] [--sweep step|continuous]``.
 """
 
 from __future__ import annotations
@@ -87,7 +87,11 @@ def vision_available() -> bool:
     return hasattr(vision, "track_holder")
 
 
-def frames_grabbed(hist: list[dict[str, Any]]) -> int:
+def frames_grabbed(hist: list[dict[str, Any]], sweep: str = "step") -> int:
+    """Frames that each cost a frame period after a settle (a continuous sweep's frames
+    stream during its motion, already in the motion time)."""
+    if sweep == "continuous":
+        return 16 + 2
     return sum(int(h["frames"]) * int((h.get("plan") or {}).get("frames_per_step", 1))
                for h in hist) + 16 + 2  # + calibration and pre-check frames
 
@@ -120,7 +124,8 @@ def run_seed(cfg: AligndConfig, seed: int, tracker: str, sigma_px: float,
     else:
         err = float("nan")
     compute = float(res.details["compute_s"])
-    to_verdict = motion + compute + FRAME_PERIOD_S * frames_grabbed(hist)
+    to_verdict = motion + compute + FRAME_PERIOD_S * frames_grabbed(
+        hist, cfg.procedure.sweep_mode)
     check_verdicts: dict[str, int] = {}
     check_sweeps: list[int] = []
     for k in range(checks):
@@ -183,11 +188,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames-per-step", type=int, default=1)
     ap.add_argument("--real-time", action="store_true",
                     help="also time one alignment from 3 mm at time scale 1 (wall clock)")
+    ap.add_argument("--sweep", choices=("step", "continuous"), default=None,
+                    help="procedure.sweep_mode (default: the config's)")
     ap.add_argument("--checks", type=int, default=50,
                     help="repeated checks of the first seed's aligned sample (quick: 5)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
     cfg = reference_world(load_config(args.config))
+    if args.sweep is not None:
+        cfg = cfg.model_copy(update={"procedure": cfg.procedure.model_copy(
+            update={"sweep_mode": args.sweep})})
     tracker = args.tracker
     if tracker == "auto":
         tracker = "vision" if vision_available() else "standin"
@@ -199,7 +209,10 @@ def main(argv: list[str] | None = None) -> int:
     tol = cfg.procedure.tolerance_um
     print(f"closed loop: {n} seeds, tracker={tracker}"
           + (f" (sigma {args.sigma_px} px)" if tracker == "standin" else "")
-          + f", sweep +-{cfg.procedure.sweep_deg:g} deg x {cfg.procedure.sweep_steps}, "
+          + f", {cfg.procedure.sweep_mode} sweep +-{cfg.procedure.sweep_deg:g} deg"
+          + (f" x {cfg.procedure.sweep_steps}" if cfg.procedure.sweep_mode == "step" else
+             f" at {cfg.procedure.continuous.speed_deg_s:g} deg/s, "
+             f"{cfg.procedure.continuous.frame_rate_hz:g} fps") + ", "
           f"frames/step {args.frames_per_step}, tolerance {tol:g} um, runout 3 um, stage "
           f"repeatability 1 um, {cfg.procedure.decision_rule} acceptance")
     hdr = (f"{'seed':>4} {'start um':>9} {'verdict':>15} {'mv':>3} {'sw':>3} {'true um':>8} "

@@ -25,6 +25,7 @@ from drivers.config import AxisConfig
 from drivers.errors import (
     Cancelled,
     ConfigMismatchError,
+    DeviceError,
     DeviceFault,
     DeviceTimeoutError,
     LimitError,
@@ -87,6 +88,7 @@ class Axis(ABC):
         self.name = name or config.role
         self.position_known = False  # False until homed or verified; set False on disconnect
         self.clock: Clock = clock or SYSTEM_CLOCK  # a manual clock makes waits instant
+        self.speed = config.speed  # the velocity moves run at now (``set_speed``)
         self._cancel: threading.Event | None = None  # set by ``cancel_on``
         # Called on every poll while the axis waits for the controller (homing, moves):
         # the daemon feeds the systemd watchdog from here, as a homing can take minutes.
@@ -126,6 +128,12 @@ class Axis(ABC):
     @property
     @abstractmethod
     def port(self) -> str: ...
+
+    def _send_speed(self, speed: float) -> None:
+        """Write the move velocity (units/s) to the controller. Drivers that can do so
+        override this; the base refuses."""
+        raise DeviceError(f"{type(self).__name__} cannot change its velocity",
+                          device=self.name, port=self.port, command="set velocity")
 
     def controller_limits(self) -> tuple[float, float] | None:
         """The travel limits the controller itself enforces (read from it), in units;
@@ -191,6 +199,58 @@ class Axis(ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def set_speed(self, speed: float) -> None:
+        """Run the next moves at ``speed`` units/s (at most the configured ``speed``, which
+        the move timeouts and the controller's profile were set up for).
+
+        Why: a continuous sweep turns at a speed chosen for the camera's exposure, slower
+        than a positioning move. Raises ``LimitError`` for a speed that is not a positive
+        finite number up to the configured one."""
+        top = self.config.speed
+        if not (isinstance(speed, (int, float)) and math.isfinite(speed) and 0 < speed <= top):
+            raise LimitError(f"velocity {speed!r} {self.config.units}/s outside (0, {top:g}] "
+                             "(the axis' configured speed is the most it runs at)",
+                             device=self.name, port=self.port, command="set velocity")
+        self._send_speed(float(speed))
+        self.speed = float(speed)
+
+    @contextlib.contextmanager
+    def speed_limited(self, speed: float) -> Iterator[None]:
+        """Within the block moves run at ``speed``; the configured speed is restored after
+        (also on an error; a failed restore is logged, as the block's own error matters
+        more)."""
+        self.set_speed(speed)
+        try:
+            yield
+        finally:
+            try:
+                self.set_speed(self.config.speed)
+            except Exception:  # the axis may be the reason the block failed
+                log.exception("%s: restoring the configured speed failed", self.name)
+
+    def start_move(self, target: float) -> None:
+        """Start an absolute move to ``target`` (checked against the soft limits) and
+        return at once, with no backlash approach: for moves during which something is
+        measured (a continuous sweep). ``end_move`` waits for it and verifies it."""
+        target = self.check_target(target)
+        self.position_known = False
+        self._start_move(target)
+
+    def end_move(self, target: float, start: float) -> float:
+        """Wait for a move begun with ``start_move`` from ``start`` and verify its
+        read-back within the deadband (``MissedTargetError`` otherwise); the read-back."""
+        cfg = self.config
+        timeout = move_timeout_s(target - start, self.speed, cfg.accel, floor_s=0.0) / max(
+            cfg.time_scale, 1e-9) + MOVE_TIMEOUT_FLOOR_S
+        self.wait_until_stopped(timeout, command=f"move to {target:.6g}")
+        reached = self.position()
+        if abs(reached - target) > cfg.deadband:
+            raise MissedTargetError(f"missed target {target:.6g} {cfg.units}: read-back "
+                                    f"{reached:.6g} (deadband {cfg.deadband:g})",
+                                    device=self.name, port=self.port)
+        self.position_known = True
+        return reached
 
     @property
     def needs_homing(self) -> bool:
@@ -275,7 +335,7 @@ class Axis(ABC):
         cfg = self.config
         # the motion's time scales with a simulator's clock; the floor (polling, link
         # latency, a loaded machine) does not: at time_scale 200 a scaled floor was 10 ms
-        timeout = move_timeout_s(target - start, cfg.speed, cfg.accel, floor_s=0.0) / max(
+        timeout = move_timeout_s(target - start, self.speed, cfg.accel, floor_s=0.0) / max(
             cfg.time_scale, 1e-9) + MOVE_TIMEOUT_FLOOR_S
         self._start_move(target)
         self.wait_until_stopped(timeout, command=f"move to {target:.6g}")

@@ -15,6 +15,8 @@ from typing import Any, Self
 
 import numpy as np
 
+from drivers.clock import SYSTEM_CLOCK, Clock
+
 log = logging.getLogger(__name__)
 
 
@@ -23,7 +25,7 @@ class Frame:
     """One grabbed image: 8-bit grey (H, W) or BGR (H, W, 3), with when and how."""
 
     image: np.ndarray
-    timestamp: float  # time.monotonic() at exposure (best estimate)
+    timestamp: float  # the camera's clock (time.monotonic()) at mid-exposure (best estimate)
     seq: int
     metadata: dict[str, Any] = field(default_factory=dict)
 
@@ -42,6 +44,9 @@ class Camera(ABC):
     def __init__(self, name: str, source: str) -> None:
         self.name = name
         self.source = source
+        # the clock a frame's ``timestamp`` and ``grab(after=...)`` are on: the machine's
+        # monotonic clock for real cameras; a simulated rig's manual clock for its cameras
+        self.clock: Clock = SYSTEM_CLOCK
 
     @abstractmethod
     def open(self) -> None: ...

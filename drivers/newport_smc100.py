@@ -531,9 +531,13 @@ class Smc100Axis(Axis):
         """Send the configured speed and acceleration once (the move timeouts assume them)."""
         if self._profile_sent:
             return
-        self.send("VA", self.config.speed)
+        self.send("VA", self.speed)
         self.send("AC", self.config.accel)
         self._profile_sent = True
+
+    def _send_speed(self, speed: float) -> None:
+        """``VA``: the velocity of the next moves (accepted when not moving)."""
+        self.send("VA", speed)
 
     def home(self) -> None:
         """``OR`` from NOT REFERENCED and wait for READY; DISABLE is re-enabled instead.

@@ -851,7 +851,7 @@ class AptAxis(Axis):
             assert info is not None
             self._identity = self._make_identity(info)
             self._enable_channel()
-            self._set_velocity(self.config.speed, self.config.accel)
+            self._set_velocity(self.speed, self.config.accel)
             st = self.status()
             self.position_known = st.homed
         except BaseException:
@@ -916,6 +916,10 @@ class AptAxis(Axis):
         if (got.acceleration, got.max_velocity) != (params.acceleration, params.max_velocity):
             raise DeviceFault(f"velocity parameters not taken: wrote {params}, read {got}",
                               device=self.name, port=self.port, command="MOT_SET_VELPARAMS")
+
+    def _send_speed(self, speed: float) -> None:
+        """``MOT_SET_VELPARAMS`` with the configured acceleration, read back."""
+        self._set_velocity(speed, self.config.accel)
 
     def velocity_params(self) -> VelParams:
         reply = self._request(pack_short(Msg.MOT_REQ_VELPARAMS, self.channel,

@@ -516,7 +516,7 @@ class ZaberAxis(Axis):
 
     def _apply_motion_settings(self) -> None:
         """Make the device's maxspeed/accel match the config, so move timeouts hold."""
-        want = {"maxspeed": self.speed_data(self.config.speed),
+        want = {"maxspeed": self.speed_data(self.speed),
                 "accel": self.accel_data(self.config.accel)}
         if not 1 <= want["accel"] <= ACCEL_DATA_MAX:
             limit = ACCEL_DATA_MAX / ACCEL_UNITS_PER_STEP_S2 * self.microstep_mm
@@ -529,6 +529,10 @@ class ZaberAxis(Axis):
             if abs(have - value) > max(1, 0.01 * value):
                 log.info("%s: set %s %d (was %d)", self.name, setting, value, have)
                 self._checked(f"set {setting} {value}", retries=RETRIES)
+
+    def _send_speed(self, speed: float) -> None:
+        """``set maxspeed``: the velocity of the next moves (device units)."""
+        self._checked(f"set maxspeed {self.speed_data(speed)}", retries=RETRIES)
 
     def close(self) -> None:
         if not self._connected:

@@ -6,7 +6,6 @@ tracker for good frames; a blank or saturated frame goes to the real ``alignd.vi
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
@@ -27,6 +26,7 @@ class FaultyCamera(Camera):
     def __init__(self, inner: Camera, kind: str) -> None:
         super().__init__(inner.name, inner.source)
         self.inner = inner
+        self.clock = inner.clock  # its frames are stamped on the inner camera's clock
         self.kind = kind
         self.armed = False
 
@@ -44,11 +44,11 @@ class FaultyCamera(Camera):
                               port=self.source)
         f = self.inner.grab(after, timeout_s)
         if self.kind == "stale":  # an old buffer: exposed before the stage settled
-            return Frame(f.image, (after or time.monotonic()) - 0.5, f.seq, f.metadata)
+            return Frame(f.image, (after or self.clock.now()) - 0.5, f.seq, f.metadata)
         if self.kind == "holder_lost":  # the frame is fine, the holder is not in it
             return Frame(f.image, f.timestamp, f.seq, {"source": self.source})
         level = 0 if self.kind == "blank" else 255
-        return Frame(np.full((720, 1280), level, np.uint8), time.monotonic(), f.seq, {})
+        return Frame(np.full((720, 1280), level, np.uint8), self.clock.now(), f.seq, {})
 
 
 def tracker(seed: int) -> Any:

@@ -566,7 +566,7 @@ class _Run:
         self._emit("precheck", "looking for the holder")
         for attempt in range(HOLDER_LOOK_FRAMES):
             check_abort(self.abort)
-            det = self.tools.track(grab_fresh(top, time.monotonic()))
+            det = self.tools.track(grab_fresh(top, top.clock.now()))
             if det.ok:
                 break
             log.info("holder not found in top frame %d: %s", attempt + 1, det.reason)
@@ -577,7 +577,7 @@ class _Run:
             check_abort(self.abort)
             self._emit("precheck", "top-camera eccentricity")
             try:
-                e = self.tools.eccentricity(top.grab(after=time.monotonic()))
+                e = self.tools.eccentricity(top.grab(after=top.clock.now()))
                 self.recorder.event(f"pre-check: top-camera rim eccentricity {e:.4f}")
                 if e > pc.max_eccentricity:
                     problems.append(("fault", f"top-camera eccentricity {e:.3f} exceeds "
@@ -589,7 +589,7 @@ class _Run:
             check_abort(self.abort)
             self._emit("precheck", "side-camera tilt")
             try:
-                self.st.tilt_deg = float(self.tools.tilt(side.grab(after=time.monotonic())))
+                self.st.tilt_deg = float(self.tools.tilt(side.grab(after=side.clock.now())))
                 self.recorder.event(f"pre-check: sample tilt {self.st.tilt_deg:+.4f} deg")
                 if abs(self.st.tilt_deg) > pc.max_tilt_deg:
                     problems.append(("out_of_tolerance",

@@ -14,7 +14,6 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -139,7 +138,7 @@ def calibrate(rig: Rig, cfg: AligndConfig, tools: Tools, *, abort: threading.Eve
             check_abort(abort)
             pos = ax.position() if target is None else ax.move_to(target)
             for _ in range(frames_per_position):
-                frame = grab_fresh(cam, time.monotonic())
+                frame = grab_fresh(cam, cam.clock.now())
                 det = tools.track(frame)
                 step_no += 1
                 recorder.frame(frame.image, f"calibration-{role}-{step_no:03d}")

@@ -314,7 +314,7 @@ class _Commission:
         """The holder's corners averaged over ``frames`` settled frames (None: not found)."""
         cam = self.rig.camera("top")
         assert cam is not None and self.tools is not None
-        settled = time.monotonic()
+        settled = cam.clock.now()
         found = []
         for j in range(frames):
             frame = grab_fresh(cam, settled)
@@ -455,7 +455,7 @@ class _Commission:
                               "zenith not measured", name="not measured"))
             return
         try:
-            info = self.tools.rim(grab_fresh(cam, time.monotonic()), self.c.rim_radius_mm,
+            info = self.tools.rim(grab_fresh(cam, cam.clock.now()), self.c.rim_radius_mm,
                                   self.c.top_camera_height_mm)
         except AligndError as exc:
             self._add(Finding("top.rim", "warn", f"rim not measurable: {exc}",
@@ -885,7 +885,7 @@ class _Commission:
                               name="not measured"))
             return
         try:
-            s0 = self.tools.side(grab_fresh(side, time.monotonic()))
+            s0 = self.tools.side(grab_fresh(side, side.clock.now()))
         except AligndError as exc:
             self._add(Finding("side.camera", "fail", f"pole or sample not found: {exc}",
                               name="targets not found"))
@@ -906,7 +906,7 @@ class _Commission:
             d = -d
         self._move("translator", base + d)
         try:
-            s1 = self.tools.side(grab_fresh(side, time.monotonic()))
+            s1 = self.tools.side(grab_fresh(side, side.clock.now()))
         finally:
             self._move("translator", base)
         shift = (s1.sample_x_px - s0.sample_x_px) * (1 if d > 0 else -1)

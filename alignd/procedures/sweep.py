@@ -25,6 +25,7 @@ from alignd.config import AligndConfig, HolderConfig
 from alignd.errors import SolveError, VisionError
 from alignd.procedures.angles import AngleMap, check_sweep_angles
 from alignd.procedures.budget import Budget, Contribution, u_of
+from alignd.procedures.continuous import frame_angles, run_continuous_sweep
 from alignd.procedures.events import ProgressCallback, ProgressEvent
 from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
@@ -95,6 +96,33 @@ def holder_pose(corners: np.ndarray, holder: HolderConfig) -> HolderPose:
     target = center + scale * (tu * u_hat + tv * v_hat)
     return HolderPose(center, u_hat, v_hat, scale, math.degrees(math.atan2(u_hat[1], u_hat[0])),
                       target)
+
+
+@dataclass(frozen=True)
+class HolderPoses:
+    """``holder_pose`` of many frames at once (a continuous sweep has hundreds)."""
+
+    target_px: np.ndarray  # (n, 2)
+    scale_px_per_mm: np.ndarray  # (n,)
+    angle_deg: np.ndarray  # (n,)
+
+
+def holder_poses(corners: np.ndarray, holder: HolderConfig) -> HolderPoses:
+    """``holder_pose`` vectorised over (n, 4, 2) corners (all finite)."""
+    c = np.asarray(corners, float).reshape(-1, 4, 2)
+    u_vec = ((c[:, 1] - c[:, 0]) + (c[:, 2] - c[:, 3])) / 2
+    v_vec = ((c[:, 3] - c[:, 0]) + (c[:, 2] - c[:, 1])) / 2
+    su, sv = holder.size_mm
+    nu, nv = np.hypot(*u_vec.T), np.hypot(*v_vec.T)
+    if np.any(nu == 0) or np.any(nv == 0):
+        raise VisionError("degenerate holder corners (zero-length edge)")
+    u_hat = u_vec / nu[:, None]
+    v_perp = v_vec - u_hat * np.sum(u_hat * v_vec, axis=1)[:, None]
+    v_hat = v_perp / np.hypot(*v_perp.T)[:, None]
+    scale = (nu / su + nv / sv) / 2
+    tu, tv = holder.target_mm
+    target = c.mean(axis=1) + scale[:, None] * (tu * u_hat + tv * v_hat)
+    return HolderPoses(target, scale, np.degrees(np.arctan2(u_hat[:, 1], u_hat[:, 0])))
 
 
 def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -185,6 +213,7 @@ class SweepData:
     track_s: float = 0.0
     grab_s: float = 0.0
     motion_s: float = 0.0
+    mode: Literal["step", "continuous"] = "step"  # continuous: angles are priors
 
     @property
     def tracked(self) -> np.ndarray:
@@ -441,7 +470,7 @@ def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration
         t0 = time.perf_counter()
         readback.append(tt.move_to(float(a)) if approach is None
                         else tt.move_to(float(a), approach))
-        settled = time.monotonic()
+        settled = cam.clock.now()
         t1 = time.perf_counter()
         t_motion += t1 - t0
         found = []
@@ -530,17 +559,17 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
     cov_c = np.asarray(centre.cov_px2, float)
     cov_fit = np.asarray(getattr(centre, "cov_fit_px2", cov_c), float)
     n_sw = int(getattr(centre, "n_sweeps", 1))
-    poses = [holder_pose(data.points[i], holder) for i in idx]
+    poses = holder_poses(data.points[idx], holder)
     ang = np.asarray(data.readback_deg, float)[idx]
     rback = rot(-ang)  # (n, 2, 2)
-    targets = np.array([p.target_px for p in poses])
+    targets = poses.target_px
     per_frame = np.einsum("nij,nj->ni", rback, targets - c)
     n = len(idx)
     off = per_frame.mean(axis=0)
     cov_t = np.cov(per_frame.T, ddof=1) / n if n > 1 else np.zeros((2, 2))
     A = rback.mean(axis=0)
     cov_off = A @ cov_c @ A.T + cov_t
-    scales = np.array([p.scale_px_per_mm for p in poses])
+    scales = poses.scale_px_per_mm
     s = float(scales.mean())
     rel_s = float(scales.std(ddof=1) / math.sqrt(n) / s) if n > 1 else 0.0
     off_mm = off / s
@@ -568,7 +597,7 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
         Contribution("stage repeatability", 0.0, "B",
                      "none: the verdict's sweep followed the last move"),
     ))
-    yaw = [_wrap180(p.angle_deg - a) for p, a in zip(poses, ang, strict=True)]
+    yaw = [_wrap180(float(p) - a) for p, a in zip(poses.angle_deg, ang, strict=True)]
     yaw_ref = yaw[0]
     yaw_deg = _wrap180(yaw_ref + float(np.mean([_wrap180(y - yaw_ref) for y in yaw])))
     sigma_c = math.sqrt(max(float(np.linalg.eigvalsh(cov_c).max()), 0.0)) / s * 1000.0
@@ -653,10 +682,16 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     plan = plan or SweepPlan(p.sweep_deg, p.sweep_steps, frames_per_step)
     amap = angle_map or AngleMap(p.turntable_direction, 1.0, "config")
     holder = holder or cfg.holder
-    raw = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
-                    progress=progress, recorder=recorder,
-                    frames_per_step=plan.frames_per_step, angles=plan.angles(),
-                    approach=approach)
+    if p.sweep_mode == "continuous":
+        raw = run_continuous_sweep(rig, cfg, tools, kind=kind, iteration=iteration,
+                                   abort=abort, progress=progress, recorder=recorder,
+                                   half_deg=plan.half_deg,
+                                   frames_per_step=plan.frames_per_step, approach=approach)
+    else:
+        raw = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
+                        progress=progress, recorder=recorder,
+                        frames_per_step=plan.frames_per_step, angles=plan.angles(),
+                        approach=approach)
     raw = dataclasses.replace(raw, points=_one_corner_order(raw))
     data = dataclasses.replace(raw, readback_deg=amap.image_angles(raw.readback_deg).tolist())
     n_ok = int(data.tracked.sum())
@@ -679,8 +714,11 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
                                for i in np.flatnonzero(ok)]))
         pts = runout.correct_px(np.asarray(raw.readback_deg), pts, 1.0 / scale)
     rect = dataclasses.replace(data, points=pts)
+    if raw.mode == "continuous":  # each frame's angle from the images, the read-back its prior
+        rect = dataclasses.replace(rect, readback_deg=frame_angles(
+            np.asarray(data.readback_deg), pts).tolist())
     try:
-        centre = tools.solve(np.asarray(data.readback_deg), rect.points, pixel_size_um)
+        centre = tools.solve(np.asarray(rect.readback_deg), rect.points, pixel_size_um)
     except SolveError:
         raise
     except (ValueError, np.linalg.LinAlgError) as exc:

@@ -115,6 +115,7 @@ class TappedCamera(Camera):
 
     def __init__(self, role: str, inner: Camera, live: LiveFrames) -> None:
         super().__init__(inner.name, inner.source)
+        self.clock = inner.clock  # its frames are stamped on the inner camera's clock
         self.role = role
         self.inner = inner
         self.live = live

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
@@ -95,7 +94,10 @@ class DirectSimAxis(Axis):
     def _start_move(self, target: float) -> None:
         self._require(f"move to {target:.6g}")
         with self.lock:
-            self.sim.move_to(target)
+            self.sim.move_to(target, speed=self.speed)
+
+    def _send_speed(self, speed: float) -> None:
+        self._require("set velocity")
 
     def stop(self) -> None:
         with self.lock:
@@ -129,8 +131,10 @@ class SceneCamera(Camera):
     tiny placeholder. The real renderer is ``drivers.sim.sim_camera.SimCamera``.
     """
 
-    def __init__(self, world: World, role: Literal["top", "side"]) -> None:
+    def __init__(self, world: World, role: Literal["top", "side"], *,
+                 clock: Clock | None = None) -> None:
         super().__init__(f"{role}-scene-camera", f"sim-scene:{role}")
+        self.clock = clock or SYSTEM_CLOCK
         self.world = world
         self.role = role
         self._seq = 0
@@ -159,7 +163,7 @@ class SceneCamera(Camera):
             meta["sample_x_px"] = side_x_px(side.sample_x_mm, opts)
             meta["pole_x_px"] = side_x_px(side.pole_x_mm, opts)
         img = np.full((8, 8), self._seq % 251, np.uint8)
-        return Frame(img, time.monotonic(), self._seq, meta)
+        return Frame(img, self.clock.now(), self._seq, meta)
 
 
 @dataclass
@@ -204,10 +208,12 @@ class DirectParts:
 def build_direct_axes(controllers: list[ControllerConfig], cameras: list[CameraConfig],
                       sim: SimConfig, seed: int, *, clock: Clock | None = None,
                       homed: bool = True, camera_kind: Literal["render", "scene"] = "render",
-                      render_opts: RenderOptions | None = None) -> DirectParts:
+                      render_opts: RenderOptions | None = None,
+                      exposure_s: float = 0.0) -> DirectParts:
     """Simulated axes and cameras for a controller/camera config, seeded.
 
-    ``homed=True`` models an instrument referenced since power-on, its linear stages at
+    ``exposure_s`` is the top camera's exposure (frames grabbed during motion are smeared
+    over it). ``homed=True`` models an instrument referenced since power-on, its linear stages at
     mid-travel (where the world's initial misalignment is defined); ``homed=False`` starts
     near there, unreferenced, like ``SimRig``.
     """
@@ -230,16 +236,19 @@ def build_direct_axes(controllers: list[ControllerConfig], cameras: list[CameraC
     world = World(sim.world, sim_axes, streams[2])
     cams: dict[str, Camera] = {}
     cam_seed = int(streams[3].integers(2**31))
+    # frames are stamped on the clock the axes wait on: the manual clock, or the machine's
+    cam_clock: Clock = clock if isinstance(clock, ManualClock) else SYSTEM_CLOCK
     for cc in cameras:
         if cc.source not in ("sim", "sim-direct"):
             continue
         if camera_kind == "scene":
-            cams[cc.role] = SceneCamera(world, cc.role)
+            cams[cc.role] = SceneCamera(world, cc.role, clock=cam_clock)
         else:
             from drivers.sim.sim_camera import SimCamera
 
             cams[cc.role] = SimCamera(world, cc.role, opts=render_opts,
-                                      seed=cam_seed + (cc.role == "side"))
+                                      seed=cam_seed + (cc.role == "side"), clock=cam_clock,
+                                      exposure_s=exposure_s if cc.role == "top" else 0.0)
     return DirectParts(axes, sim_axes, world, cams, clock)
 
 

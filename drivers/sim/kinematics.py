@@ -151,12 +151,19 @@ class SimAxis:
     def settled(self) -> bool:
         return not self.moving and self.clock.now() >= self._segment_end_time() + self.p.settle_s
 
-    def load_position(self) -> float:
-        """Where the mechanics really are: motor through backlash, plus landing error."""
-        m = self.motor_position()
+    def load_position(self, at: float | None = None) -> float:
+        """Where the mechanics really are: motor through backlash, plus landing error.
+
+        ``at`` (a time of the clock, default now) evaluates the current segment's profile
+        at another instant without side effects: a camera integrates the pose over its
+        exposure. A time before the segment began reads its start."""
+        if at is None:
+            m, running = self.motor_position(), self.moving
+        else:
+            m, running = self._profile(max(at, self._t0))
         half = self.p.backlash / 2
         load = min(max(self._load0, m - half), m + half)
-        return load + (0.0 if self.moving else self._land_error)
+        return load + (0.0 if running else self._land_error)
 
     # ---- commands ------------------------------------------------------------------
     def move_to(self, target: float, speed: float | None = None) -> None:
@@ -175,7 +182,7 @@ class SimAxis:
             target = self.p.travel_max
             self._limit_on_arrival = "high"
         self._x0, self._x1, self._t0 = m, float(target), t
-        self._v = speed or self.p.speed
+        self._v = min(speed, self.p.speed) if speed else self.p.speed  # the motor's top speed
         self._land_error = float(self.rng.normal(0.0, self.p.repeatability)) \
             if self.p.repeatability > 0 else 0.0
 

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from drivers.config import SimWorldConfig
+from drivers.sim.clock import ManualClock
 from drivers.sim.world import PinholeCamera, SideScene, TopScene, World
 
 __all__ = [
@@ -365,6 +366,13 @@ def undistort_points(pts: np.ndarray, camera: PinholeCamera, k1: float) -> np.nd
 
 
 # ---- image formation -------------------------------------------------------------------
+def finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
+           ) -> np.ndarray:
+    """Illumination, blur, sensor noise and quantisation of a float32 light image (a
+    camera that integrates several renders applies these once)."""
+    return _finish(img, opts, rng)
+
+
 def _finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
             ) -> np.ndarray:
     """Illumination, blur, noise and quantisation, applied in place where possible."""
@@ -586,8 +594,9 @@ class _FixedAxis:
         self.p = self._P()
         self.p.travel_min = self.p.travel_max = mid
         self._pos = pos
+        self.clock = ManualClock()  # a parked world's time stands still
 
-    def load_position(self) -> float:
+    def load_position(self, at: float | None = None) -> float:
         return self._pos
 
 

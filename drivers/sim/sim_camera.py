@@ -1,29 +1,40 @@
-"""Simulated cameras: the renderer drawing the simulated world as it is right now."""
+"""Simulated cameras: the renderer drawing the simulated world over each frame's exposure."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
-import time
 from typing import Literal
 
 import numpy as np
 
 from drivers.camera import Camera, Frame
+from drivers.clock import SYSTEM_CLOCK, Clock
 from drivers.sim import render
+from drivers.sim.clock import ScaledClock
 from drivers.sim.world import World
+
+BLUR_STEP_PX = 0.25  # sub-exposures are rendered this far apart along the fastest corner
+MAX_SUBFRAMES = 24
 
 
 class SimCamera(Camera):
     """A camera looking at the simulated world (top or side view).
 
-    Each grab renders the world's state at that instant, so a frame grabbed after a move
-    settled shows the settled pose; one grabbed during a move shows where the stages are.
+    A grab ends an exposure of ``exposure_s`` seconds at that instant: a frame grabbed
+    after a move settled shows the settled pose; one grabbed during a move shows the
+    stages where they were over the exposure, smeared as a real sensor smears them (the
+    top view is rendered at sub-exposure instants along the way and averaged, as many as
+    keep the fastest corner's steps under ``BLUR_STEP_PX``). The frame's timestamp is the
+    middle of the exposure, on ``clock`` (the rig's: a manual clock for the direct rig,
+    the machine's monotonic clock otherwise).
     """
 
     def __init__(self, world: World, role: Literal["top", "side"], *,
                  opts: render.RenderOptions | None = None, seed: int = 0,
-                 lock: threading.Lock | None = None) -> None:
+                 lock: threading.Lock | None = None, clock: Clock | None = None,
+                 exposure_s: float = 0.0) -> None:
         super().__init__(f"{role}-camera", f"sim:{role}")
         self.world = world
         self.role = role
@@ -34,6 +45,10 @@ class SimCamera(Camera):
         self.opts = opts
         self.rng = np.random.default_rng(seed)
         self.lock = lock or threading.Lock()
+        self.clock = clock or SYSTEM_CLOCK
+        if not (math.isfinite(exposure_s) and exposure_s >= 0):
+            raise ValueError(f"exposure_s must be >= 0 s, got {exposure_s!r}")
+        self.exposure_s = exposure_s
         self._seq = 0
         self._open = False
 
@@ -43,16 +58,55 @@ class SimCamera(Camera):
     def close(self) -> None:
         self._open = False
 
+    def _world_exposure(self) -> tuple[float, float]:
+        """Start and end of the exposure on the world's clock (a scaled clock runs the
+        world ``scale`` times faster than the camera's seconds)."""
+        ax = next(iter(self.world.axes.values()), None)
+        scale = ax.clock.scale if ax is not None and isinstance(ax.clock, ScaledClock) else 1.0
+        end = self.world.now()
+        return end - self.exposure_s * scale, end
+
+    def _render_top(self) -> tuple[np.ndarray, float]:
+        """The top frame integrated over the exposure, and the true angle at its middle."""
+        t0, t1 = self._world_exposure()
+        cam = self.world.top_camera
+        if t1 <= t0:
+            scene = self.world.top_scene()
+            return render.render_top(scene, cam, self.opts, self.rng), scene.turntable_deg
+        a = cam.project(self.world.top_scene(t0).holder_corners_mm)
+        b = cam.project(self.world.top_scene(t1).holder_corners_mm)
+        travel = float(np.max(np.hypot(*(b - a).T)))
+        n = min(max(math.ceil(travel / BLUR_STEP_PX), 1), MAX_SUBFRAMES)
+        mid = self.world.turntable_deg((t0 + t1) / 2)
+        if n == 1:
+            scene = self.world.top_scene((t0 + t1) / 2)
+            return render.render_top(scene, cam, self.opts, self.rng), mid
+        clean = dataclasses.replace(self.opts, read_noise_dn=0.0, electrons_per_dn=0.0,
+                                    quantize=False)
+        acc: np.ndarray | None = None
+        for k in range(n):
+            sub = render.render_top(self.world.top_scene(t0 + (k + 0.5) / n * (t1 - t0)),
+                                    cam, clean, None)
+            acc = sub if acc is None else acc + sub
+        assert acc is not None
+        # the sensor's noise and quantisation once, on the integrated light
+        sensor = dataclasses.replace(self.opts, gradient=(0.0, 0.0), shadow=None,
+                                     blur_sigma_px=0.0)
+        return render.finish(acc / np.float32(n), sensor, self.rng), mid
+
     def grab(self, after: float | None = None, timeout_s: float = 2.0) -> Frame:
-        t = time.monotonic()
         with self.lock:
+            if after is not None:  # the exposure starts after ``after`` (a settled stage)
+                wait = after + self.exposure_s - self.clock.now()
+                if wait > 0:
+                    self.clock.sleep(wait)
+            t = self.clock.now() - self.exposure_s / 2
             if self.role == "top":
-                scene = self.world.top_scene()
-                img = render.render_top(scene, self.world.top_camera, self.opts, self.rng)
-                meta: dict[str, object] = {"turntable_deg_true": scene.turntable_deg}
+                img, angle = self._render_top()
+                meta: dict[str, object] = {"turntable_deg_true": angle}
             else:
                 img = render.render_side(self.world.side_scene(), self.opts, self.rng)
                 meta = {}
         self._seq += 1
-        meta.update(source=self.source, exposure=1.0, gain=1.0)
+        meta.update(source=self.source, exposure=1.0, gain=1.0, exposure_s=self.exposure_s)
         return Frame(img, t, self._seq, meta)

@@ -122,18 +122,24 @@ class World:
         self.top_camera = top_camera(cfg)
 
     # ---- stage positions -------------------------------------------------------------
-    def _pos(self, role: str) -> float:
+    def _pos(self, role: str, at: float | None = None) -> float:
         ax = self.axes.get(role)
-        return ax.load_position() if ax is not None else 0.0
+        return ax.load_position(at) if ax is not None else 0.0
+
+    def now(self) -> float:
+        """The simulated time (the axes' clock)."""
+        ax = next(iter(self.axes.values()), None)
+        return ax.clock.now() if ax is not None else 0.0
 
     def _nominal(self, role: str) -> float:
         """Mid-travel: the stage position at which the configured initial offset holds."""
         ax = self.axes.get(role)
         return (ax.p.travel_min + ax.p.travel_max) / 2 if ax is not None else 0.0
 
-    def turntable_deg(self) -> float:
-        """True mechanical angle: load position plus a periodic encoder error."""
-        a = self._pos("turntable")
+    def turntable_deg(self, at: float | None = None) -> float:
+        """True mechanical angle: load position plus a periodic encoder error (``at``: a
+        time of the axes' clock, default now; as for every pose below)."""
+        a = self._pos("turntable", at)
         true = self.cfg.turntable_direction * self.cfg.turntable_scale * a
         return true + self.cfg.turntable_encoder_error_deg * math.sin(
             math.radians(a) * 3 + self.encoder_phase)
@@ -161,48 +167,50 @@ class World:
             ey = -ey
         return {"x": ex, "y": ey, "translator": et}
 
-    def holder_center_tt(self) -> np.ndarray:
+    def holder_center_tt(self, at: float | None = None) -> np.ndarray:
         """Holder centre in the turntable frame (mm)."""
         d = self.stage_directions()
         c = self.offset0 - self._holder_to_target_tt()
         for role in ("x", "y", "translator"):
-            c = c + d[role] * (self._pos(role) - self._nominal(role))
+            c = c + d[role] * (self._pos(role, at) - self._nominal(role))
         return c
 
     def _holder_to_target_tt(self) -> np.ndarray:
         _w, depth = self.cfg.holder_size_mm
         return rot2(self.yaw_deg) @ np.array([0.0, -(depth / 2 + self.cfg.sample_thickness_mm)])
 
-    def holder_corners_tt(self) -> np.ndarray:
+    def holder_corners_tt(self, at: float | None = None) -> np.ndarray:
         w, depth = self.cfg.holder_size_mm
         local = np.array([[-w / 2, -depth / 2], [w / 2, -depth / 2], [w / 2, depth / 2],
                           [-w / 2, depth / 2]])
-        return self.holder_center_tt() + local @ rot2(self.yaw_deg).T
+        return self.holder_center_tt(at) + local @ rot2(self.yaw_deg).T
 
-    def target_tt(self) -> np.ndarray:
+    def target_tt(self, at: float | None = None) -> np.ndarray:
         """The middle of the sample surface, turntable frame (mm)."""
-        return self.holder_center_tt() + self._holder_to_target_tt()
+        return self.holder_center_tt(at) + self._holder_to_target_tt()
 
     # ---- lab frame -------------------------------------------------------------------
-    def to_lab(self, pts_tt: np.ndarray, z: float) -> np.ndarray:
-        a = self.turntable_deg()
+    def to_lab(self, pts_tt: np.ndarray, z: float, at: float | None = None) -> np.ndarray:
+        a = self.turntable_deg(at)
         xy = np.atleast_2d(pts_tt) @ rot2(a).T + self.wobble_mm(a)
         return np.column_stack([xy, np.full(len(xy), z)])
 
-    def top_scene(self) -> TopScene:
-        z = self.HOLDER_TOP_Z_MM + self._pos("z") - self._nominal("z")
+    def top_scene(self, at: float | None = None) -> TopScene:
+        """What the top camera sees at time ``at`` (default now)."""
+        z = self.HOLDER_TOP_Z_MM + self._pos("z", at) - self._nominal("z")
         w, depth = self.cfg.holder_size_mm
-        c = self.holder_center_tt()
+        c = self.holder_center_tt(at)
         face = c + np.array([[-w / 2, -depth / 2 - self.cfg.sample_thickness_mm],
                              [w / 2, -depth / 2 - self.cfg.sample_thickness_mm]]) @ rot2(
             self.yaw_deg).T
+        a = self.turntable_deg(at)
         return TopScene(
-            holder_corners_mm=self.to_lab(self.holder_corners_tt(), z),
-            sample_face_mm=self.to_lab(face, z),
-            target_mm=self.to_lab(self.target_tt(), z)[0],
-            rim_center_mm=np.array([*self.wobble_mm(self.turntable_deg()), 0.0]),
+            holder_corners_mm=self.to_lab(self.holder_corners_tt(at), z, at),
+            sample_face_mm=self.to_lab(face, z, at),
+            target_mm=self.to_lab(self.target_tt(at), z, at)[0],
+            rim_center_mm=np.array([*self.wobble_mm(a), 0.0]),
             rim_radius_mm=self.cfg.rim_radius_mm,
-            turntable_deg=self.turntable_deg(),
+            turntable_deg=a,
         )
 
     def side_scene(self) -> SideScene:
