@@ -254,6 +254,9 @@ def test_default_tools_use_the_config() -> None:
     img, big, _ = _two_rectangles()
     d = _cfg_data()
     d["holder"]["size_mm"] = [48.0, 25.6]  # 300 x 160 px at 160 um/px
+    for cam in d["cameras"]:
+        if cam["role"] == "top":
+            cam["pixel_size_um"] = 160.0
     sc = random_side_scene(np.random.default_rng(1), "sample on holder")
     d["side_camera"] = {"pole_roi_px": list(sc.pole_roi_px),
                         "sample_roi_px": list(sc.sample_roi_px)}
