@@ -42,12 +42,14 @@ from alignd.vision.edges import (
     intersect,
 )
 from alignd.vision.lens import Lens
+from alignd.vision.profile_fit import fit_crossings
 
 __all__ = ["HolderDetection", "YawMeasurement", "measure_yaw", "order_corners", "track_holder"]
 
 log = logging.getLogger(__name__)
 
 _DOWN = 4
+_PROFILE = True  # refine the accepted sides by the profile fit (tests switch it off)
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 
 
@@ -312,15 +314,29 @@ def _outline_support(gx: np.ndarray, gy: np.ndarray, box: np.ndarray,
 def _fit_sides(gray: np.ndarray, corners: np.ndarray, half_width: int, margin: float,
                min_contrast: float, lens: Lens | None = None
                ) -> list[tuple[Line | None, EdgePoints]]:
+    """Each side's area-method crossings (frame pixels) and the line through them (in the
+    ideal image when there is a lens)."""
     res = []
     for i in range(4):
         p0, p1 = corners[i], corners[(i + 1) % 4]
         pts = edge_points(gray, p0, p1, half_width=half_width, margin_px=margin,
                           min_contrast=min_contrast)
-        if lens is not None and lens.k1 != 0.0:
-            pts = EdgePoints(lens.undistort(pts.xy), pts.contrast, pts.vertical)
-        res.append((fit_line(pts), pts))
+        res.append((fit_line(_ideal(pts, lens)), pts))
     return res
+
+
+def _ideal(pts: EdgePoints, lens: Lens | None) -> EdgePoints:
+    if lens is None or lens.k1 == 0.0 or pts.xy.shape[0] == 0:
+        return pts
+    return EdgePoints(lens.undistort(pts.xy), pts.contrast, pts.vertical)
+
+
+def _profile_sides(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
+                   half_width: int, lens: Lens | None = None
+                   ) -> list[tuple[Line | None, EdgePoints]]:
+    """The area method's crossings refined by the profile fit, and their lines."""
+    fine = fit_crossings(gray, [pts for _ln, pts in sides], half_width=half_width)
+    return [(fit_line(_ideal(f, lens)), f) for f in fine]
 
 
 def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None = None,
@@ -434,6 +450,7 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
     pol = _polarity(gray, corners)
     det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
                     size_tolerance)
+    hw, used = _HALF_WIDTH, sides
     if not det.ok and "rms" in det.reason:
         # a soft (defocused) edge overflows the +-5 px window: measure it in +-9 px
         wide = _fit_sides(gray, corners, 9, 12.0, min_contrast, lens)
@@ -441,6 +458,13 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
                          size_tolerance)
         if det2.ok:
             det = det2
+            hw, used = 9, wide
+    if det.ok and _PROFILE:
+        fine = _profile_sides(gray, used, hw, lens)
+        det3 = _assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
+                         size_tolerance)
+        if det3.ok:
+            det = det3
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
     return det
