@@ -36,6 +36,7 @@ __all__ = ["fit_crossings", "step_response"]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _TAILS = 3
+_MISFIT = 2.5  # columns fitted worse than this many times the edge's median are dropped
 
 
 def step_response(d: np.ndarray, s: float | np.ndarray, wa: float | np.ndarray,
@@ -141,9 +142,10 @@ _H = 0.02  # the step tables' spacing (px of normal distance)
 
 def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
                    blur: np.ndarray, geo: np.ndarray, b1: np.ndarray, b2: np.ndarray,
-                   iterations: int) -> tuple[np.ndarray, np.ndarray]:
+                   iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_fit` with s fixed per edge, S and S' read from one table per edge and the
-    3 x 3 normal equations of (a1, D, u) solved in closed form."""
+    3 x 3 normal equations of (a1, D, u) solved in closed form; returns u, D and each
+    row's residual RMS (of the last iteration's start)."""
     reach = float(np.max(np.abs(x))) + 2.5
     grid = np.arange(-reach, reach + _H, _H)
     ng = grid.size
@@ -181,7 +183,8 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         a1 += (c00 * r0 + c01 * rS + c02 * rg) / det
         D += (c01 * r0 + c11 * rS + c12 * rg) / det
         u = u + np.clip((c02 * r0 + c12 * rS + c22 * rg) / det, -1.0, 1.0)
-    return u, D
+    misfit = np.sqrt(np.maximum((r * r).sum(axis=1) - r0 * r0 / m, 0.0) / m)
+    return u, D, misfit
 
 
 def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int = 5,
@@ -256,9 +259,14 @@ def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int 
     row = np.concatenate(rows)
     if row.size == 0:
         return empty
-    u, D = _fit_tabulated(np.concatenate(Ps), x, np.concatenate(u0s), row, blur, g,
-                          np.concatenate(b1s), np.concatenate(b2s), iterations)
+    u, D, misfit = _fit_tabulated(np.concatenate(Ps), x, np.concatenate(u0s), row, blur, g,
+                                  np.concatenate(b1s), np.concatenate(b2s), iterations)
     ok = np.isfinite(u) & (np.abs(u) < hw - _TAILS) & (np.abs(D) > 1e-6)
+    # a column the model does not fit (a hole, a screw or a shadow's edge in its window)
+    for k in range(len(use)):
+        sel = row == k
+        if np.any(sel):
+            ok[sel] &= misfit[sel] <= _MISFIT * float(np.median(misfit[sel])) + 0.5
     pos = np.concatenate(cents) + u
     out = list(empty)
     for k, i in enumerate(use):
