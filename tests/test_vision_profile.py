@@ -65,8 +65,9 @@ def test_noise_free_edge_has_no_bias(angle_deg: float, blur: float) -> None:
     assert float(np.abs(dist).max()) < 0.03
 
 
-SEED, N_SCENES = 11, 2
-BOUND_RAW, BOUND_JPEG = 0.04, 0.05
+# measured: plain + 12-bit 0.024 px (area method alone 0.048), jpeg 0.027 (0.038)
+SEED, N_SCENES = 12, 2
+BOUND_RAW, BOUND_JPEG = 0.035, 0.033
 
 
 def _rms_on(categories: tuple[str, ...], seed: int, n: int,
@@ -122,3 +123,13 @@ def test_mid_grey_holder_on_a_similar_surround(surround: float) -> None:
         truth = order_corners(poly)
         err = np.linalg.norm(order_corners(det.corners_px, truth) - truth, axis=1)
         assert err.max() < 0.3, (size, err)
+
+
+def test_tracking_refines_as_the_full_search_does() -> None:
+    """Seeded with the found corners, tracking returns the same corners (the profile fit
+    runs in both) to a hundredth of a pixel."""
+    sc = random_top_scene(np.random.default_rng(5), "plain")
+    det = track_holder(sc.image, expected_size_px=sc.expected_size_px)
+    again = track_holder(sc.image, expected_size_px=sc.expected_size_px, hint=det.corners_px)
+    assert det.ok and again.ok
+    np.testing.assert_allclose(again.corners_px, det.corners_px, atol=0.01)
