@@ -52,6 +52,7 @@ __all__ = ["HolderDetection", "YawMeasurement", "measure_yaw", "order_corners", 
 log = logging.getLogger(__name__)
 
 _DOWN = 4
+_AGREE_PX, _AGREE_SIGMA = 0.05, 3.0  # profile vs area corners: allowed difference
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 
 
@@ -472,7 +473,12 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
         fine = _profile_sides(gray, used, hw, lens)
         det3 = _assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
                          size_tolerance)
-        if det3.ok:
+        # two estimates of the same corners must agree within the area method's
+        # uncertainty; where they do not, the model did not fit (a penumbra, a hole in
+        # the window) and the model-free area method's corners stand
+        moved = float(np.max(np.linalg.norm(det3.corners_px - det.corners_px, axis=1))) \
+            if det3.ok else math.inf
+        if moved <= _AGREE_PX + _AGREE_SIGMA * det.corner_sigma_px:
             det = det3
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
