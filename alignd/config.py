@@ -89,9 +89,29 @@ class ProcedureConfig(Strict):
     frames_per_step: int = Field(1, ge=1, le=50, description="frames averaged per sweep step")
     max_frames_per_step: int = Field(4, ge=1, le=50, description=(
         "the most frames per step a run averages when it must measure better to decide"))
-    max_sweep_deg: float | None = Field(25.0, gt=0, le=180, description=(
-        "the widest sweep (half-width, deg) a run widens to when it must measure better to "
-        "decide; also kept inside the turntable's soft limits; null: sweep_deg only"))
+    max_sweep_deg: float | None = Field(45.0, gt=0, le=180, description=(
+        "the widest sweep (half-width, deg): that of a sweep that is to decide under "
+        "guarded acceptance, and the most a run widens to when it must measure better; "
+        "kept inside the turntable's soft limits; null: sweep_deg only"))
+    verdict_sweep_steps: int | None = Field(11, ge=3, le=721, description=(
+        "steps of a sweep that is to decide under guarded acceptance (a check's, and every "
+        "one after a correction move), which turns over max_sweep_deg: fewer, larger steps "
+        "over a wider angle give a better centre in the same time; null: sweep_steps"))
+    verdict_frames_per_step: int = Field(2, ge=1, le=50, description=(
+        "frames averaged per step in a sweep that is to decide (as verdict_sweep_steps): a "
+        "frame costs a frame period, a step a turntable move; at least frames_per_step, at "
+        "most max_frames_per_step"))
+    alternate_sweeps: bool = Field(True, description=(
+        "start each sweep at whichever end is nearer the turntable (every step of a sweep "
+        "approached from one side, so the backlash stays out; only a constant angle offset "
+        "of the backlash differs, which does not move the centre); false: always in the "
+        "axis' approach direction (a return to the start before each sweep)"))
+    predict_after_small_move: bool = Field(True, description=(
+        "end an alignment without a sweep after its last correction move when that move "
+        "was small (the calibration's scale error on it below half stage_repeatability_um) "
+        "and the offset predicted after it, with the stages' landing scatter added to the "
+        "budget, is within under the decision rule with U at most target_u_fraction of the "
+        "tolerance; false: a verification sweep after every move"))
     systematic_um: float = Field(3.0, ge=0, description=(
         "per-axis error-motion floor assumed when no runout map is available (with a map "
         "the floor is the map's uncertainty plus the scatter between repeated sweeps)"))

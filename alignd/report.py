@@ -679,7 +679,10 @@ def draw_verdict(run: dict[str, Any], width: int = WIDTH, height: int = VERDICT_
     for v in (off - u, off + u):
         cv2.line(img, (px(v), ym - 6), (px(v), ym + 6), (200, 80, 0), 2)
     cv2.circle(img, (px(off), ym), 6, (0, 0, 200), -1, cv2.LINE_AA)
-    cv2.putText(img, f"measured {off:.1f} um, U {u:.1f} um (k=2)", (px(off) + 10, ym + 18),
+    final = (run.get("details") or {}).get("final") or {}
+    what = ("predicted after the last move" if isinstance(final, dict)
+            and final.get("predicted") else "measured")
+    cv2.putText(img, f"{what} {off:.1f} um, U {u:.1f} um (k=2)", (px(off) + 10, ym + 18),
                 FONT, 0.45, black, 1, cv2.LINE_AA)
     y = ym + 40
     for line in _wrap_chars(str(dec.get("text", "")), 110)[:2]:

@@ -1,7 +1,7 @@
 """Vision benchmark: accuracy and speed of alignd.vision, on our own renderer and on a
 randomised corpus of scenes we did not draw for the vision (drivers.sim.scenes).
 
-    python bench/vision.py            # full run (>= 1000 top, 300 side, 100 rim scenes)
+    python bench/vision.py            # full run (>= 1000 top, 300 side, 200 rim scenes)
     python bench/vision.py --quick    # CI-sized run
 
 Part 1, our renderer (the rig's simulated cameras): read noise 2 DN, 8-bit, defocus blur
@@ -415,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     n_speed = 10 if args.quick else 120
     c_top = 2 * len(TOP_CATEGORIES) if args.quick else 1001
     c_side = 2 * len(SIDE_CATEGORIES) if args.quick else 300
-    c_rim = 2 * len(RIM_CATEGORIES) if args.quick else 100
+    c_rim = 2 * len(RIM_CATEGORIES) if args.quick else 200
     cv2.setNumThreads(1)
 
     rows: list[tuple[str, str, str, str, str]] = []

@@ -49,6 +49,22 @@ FAST_PROCEDURE = {"sweep_steps": 5, "max_iterations": 2, "sweep_deg": 5.0}
 SWEEP_CHECKS_PROCEDURE = {"sweep_steps": 5, "max_iterations": 1, "sweep_deg": 5.0}
 
 
+def thread_count(pid: int) -> int:
+    return len(os.listdir(f"/proc/{pid}/task"))
+
+
+def threads_settled(pid: int, at_most: int, timeout_s: float = 15.0) -> int:
+    """The process' thread count once it is at most ``at_most``, or the count when
+    ``timeout_s`` has passed: threads that serve a finished request end on their own time,
+    so a test waits for the count instead of sleeping a fixed while."""
+    deadline = time.monotonic() + timeout_s
+    n = thread_count(pid)
+    while n > at_most and time.monotonic() < deadline:
+        time.sleep(0.05)
+        n = thread_count(pid)
+    return n
+
+
 # ---- configs ---------------------------------------------------------------------------
 def short_tmp() -> Path:
     d = Path(tempfile.mkdtemp(prefix="af-", dir="/tmp"))  # AF_UNIX paths must be short

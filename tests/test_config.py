@@ -26,7 +26,7 @@ def test_reference_config_loads() -> None:
         "turntable", "translator", "x", "y", "z"}
     ctl, idx = cfg.axis("turntable")
     assert ctl.protocol == "smc100" and ctl.axes[idx].units == "deg"
-    assert cfg.sim is not None and cfg.camera("top").pixel_size_um == 160.0
+    assert cfg.sim is not None and cfg.camera("top").pixel_size_um == 154.0
     assert len(config_hash(cfg)) == 64
 
 

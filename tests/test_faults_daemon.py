@@ -30,6 +30,8 @@ from faults_support import (
     sim_daemon,
     soft_limit_violations,
     targets,
+    thread_count,
+    threads_settled,
 )
 
 from alignd.cli import main as alignctl
@@ -292,7 +294,7 @@ def _fuzz_one(path: str, rng: random.Random) -> bytes:
 def test_fuzzed_requests_get_errors_and_leave_the_daemon_and_its_run_alone(
         busy_daemon: DaemonProc) -> None:
     dp = busy_daemon
-    threads0 = len(os.listdir(f"/proc/{dp.pid}/task"))
+    threads0 = thread_count(dp.pid)
     runs0 = len(dp.client.history(1000))
     run_id = dp.client.start("check")["run_id"]
     rng = random.Random(20)
@@ -318,8 +320,8 @@ def test_fuzzed_requests_get_errors_and_leave_the_daemon_and_its_run_alone(
     assert not [a for a in replied if a.split(b"\r\n")[0].endswith(b"500 Internal Server Error")]
     assert not [a for a in replied if a.split(b" ")[1] == b"202"]  # nothing was started
     assert len(dp.client.history(1000)) == runs0 + 1  # only the check we started
-    time.sleep(1.0)  # the cut stalled connections' threads end
-    assert len(os.listdir(f"/proc/{dp.pid}/task")) <= threads0 + 1
+    # the cut stalled connections' threads end
+    assert threads_settled(dp.pid, threads0 + 1) <= threads0 + 1
 
 
 def test_scheduled_check_while_busy_is_skipped(busy_daemon: DaemonProc,
@@ -383,7 +385,7 @@ def test_soak_checks_with_random_faults_leak_nothing_and_record_every_run() -> N
         n = 8
         verdicts = soak(dp, n)
         dp.wait_state("idle", "fault")
-        time.sleep(0.3)
+        threads_settled(dp.pid, before["threads"] + 1)  # the last requests' threads end
         after = proc_usage(dp.pid)
         runs = dp.client.history(1000)
         assert len(runs) == n + 2 - verdicts.get("reset_failed", 0)

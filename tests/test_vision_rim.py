@@ -59,7 +59,28 @@ def test_fit_rim_eccentricity_and_zenith(e_target: float) -> None:
     assert f.center_px == pytest.approx(truth["center_px"], abs=0.05)
     assert f.axes_px == pytest.approx(truth["axes_px"], abs=0.05)
     assert f.camera_zenith_deg == pytest.approx(zen, abs=0.15 if e_target < 0.05 else 0.05)
-    assert f.rms_px < 0.1 and f.n_points > 1000
+    assert f.rms_px < 0.1 and f.n_points >= 100  # edge segments of ~12 px
+
+
+@pytest.mark.parametrize(("blur", "dark"), [(0.5, False), (1.0, True), (1.5, False), (1.5, True)])
+def test_fit_rim_unbiased_under_blur(blur: float, dark: bool) -> None:
+    """A clean (noise-free) disc, e = 0.01: the edge profile's width is fitted, so blur does
+    not pull the axes (the former 9 px area windows gave +0.27 px and an e error of 0.008
+    at 1.5 px); noise-free arcs are not dropped for their tiny, unequal standard errors."""
+    import cv2
+
+    from drivers.sim.render import Conic, Raster, coverage
+    from drivers.sim.scenes import ellipse_conic
+    w, h, a, e = 1280, 720, 200.0, 0.01
+    b = a * math.sqrt(1 - e * e)
+    floor, disc = (160.0, 60.0) if dark else (60.0, 160.0)
+    cov = coverage(Conic(ellipse_conic((640.3, 360.7), a, b, 27.0)),
+                   Raster((w, h), float(w), (w / 2, h / 2), 0.0), (0, 0, w, h))
+    img = cv2.GaussianBlur((floor + (disc - floor) * cov).astype(np.float32), (0, 0), blur)
+    f = fit_rim(img, None, None)
+    assert f.eccentricity == pytest.approx(e, abs=0.0005)
+    assert f.axes_px == pytest.approx((a, b), abs=0.01)
+    assert f.center_px == pytest.approx((640.3, 360.7), abs=0.01)
 
 
 def test_zenith_from_ellipse_and_rectifier() -> None:

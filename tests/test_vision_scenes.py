@@ -12,8 +12,10 @@ from alignd.vision.holder import order_corners, track_holder
 from alignd.vision.lens import Lens
 from alignd.vision.rim import fit_rim
 from alignd.vision.side import SIGN_CONVENTION, measure_tilt
+from drivers.sim import scenes
 from drivers.sim.render import Polygon, Raster, coverage
 from drivers.sim.scenes import (
+    SIDE_CATEGORIES,
     TOP_CATEGORIES,
     random_rim_scene,
     random_side_scene,
@@ -131,6 +133,50 @@ def test_side_regions_of_interest(seed: int, cat: str) -> None:
     assert m.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.01)
 
 
+@pytest.mark.parametrize("cat", SIDE_CATEGORIES)
+def test_side_tilt_bound_per_category(cat: str) -> None:
+    """Seeded corpus scenes of each category, with the regions a config gives: the tilt
+    within 0.003 deg (the fit's own standard error on these frames is 0.0005-0.002 deg:
+    noise, not bias, is what is left) and within 4 of its reported sigma."""
+    for seed in range(2):
+        sc = random_side_scene(np.random.default_rng(seed), cat)
+        m = measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
+        err = m.tilt_deg - sc.tilt_deg
+        assert abs(err) <= 0.003, (cat, seed, err)
+        assert abs(err) <= 4 * m.sigma_deg + 0.0005, (cat, seed, err, m.sigma_deg)
+
+
+def test_side_defocus_leaves_no_bias(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A noise-free, evenly lit scene defocused by sigma 1.33 px (lens blur, before the
+    pixels): nothing but the method's own bias is left. The area method's window tails lie
+    inside such a blur; its error followed the edges' sub-pixel phase (0.001 deg here)."""
+    monkeypatch.setattr(scenes, "_light",
+                        lambda rng, shape, **kw: (np.ones(shape, np.float32), {}))
+    monkeypatch.setattr(scenes, "_texture",
+                        lambda rng, shape, scale, amp: np.zeros(shape, np.float32))
+    monkeypatch.setattr(scenes, "_finish", lambda img, rng, **kw: img)
+    sc = random_side_scene(np.random.default_rng(5), "full-height sample")
+    assert sc.params["blur_px"] > 1.3
+    m = measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
+    assert abs(m.sample_angle_deg - sc.sample_angle_deg) < 2e-4
+    assert abs(m.pole_angle_deg - sc.pole_angle_deg) < 2e-4
+    assert abs(m.tilt_deg - sc.tilt_deg) < 2e-4
+
+
+def test_side_automatic_mode_faint_pole() -> None:
+    """Uneven light and defocus leave one pole edge a 25-35 DN step, below the coarse
+    search's Canny threshold: the automatic mode looks again with a lower one (the bench's
+    quick-mode miss: "reference pole not found")."""
+    rng = np.random.default_rng(2224)
+    for i in range(8):
+        sc = random_side_scene(rng, SIDE_CATEGORIES[i % len(SIDE_CATEGORIES)])
+    assert sc.category == "uneven light"
+    m = measure_tilt(sc.image)
+    assert abs(np.mean([e.x_mid_px for e in m.pole_edges]) - sc.pole_x_px) < 1.0
+    assert min(abs(m.sample_edges[0].x_mid_px - x) for x in sc.sample_x_px) < 1.0
+    assert m.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.003)
+
+
 def test_side_automatic_mode_full_height_sample() -> None:
     """The pole and a sample slab both span the full height (the issue's 6-of-6 failure):
     the pole is the narrow bar, the sample edge the nearest other long edge."""
@@ -167,11 +213,16 @@ def test_side_region_errors_name_the_region() -> None:
 
 
 # ---- rim ---------------------------------------------------------------------------------
-@pytest.mark.parametrize(("seed", "cat"), [(0, "dark disc"), (3, "occluded"), (4, "clear")])
+@pytest.mark.parametrize(("seed", "cat"), [
+    (4, "clear"), (1, "clear"), (3, "clear"),  # 1, 3: 0.0052, 0.0032 off before the profiles
+    (3, "occluded"), (0, "occluded"), (1, "occluded"), (5, "occluded"),  # 0, 1, 5: not found
+    (0, "dark disc"), (2, "dark disc"), (4, "jpeg")])
 def test_rim_hidden_or_dark(seed: int, cat: str) -> None:
+    """The issue's target, e within 0.003, on seeded scenes of every category."""
     sc = random_rim_scene(np.random.default_rng(seed), cat)
     f = fit_rim(sc.image, None, None)
     assert f.eccentricity == pytest.approx(sc.eccentricity, abs=0.003)
+    assert f.center_px == pytest.approx(sc.center_px, abs=0.1)
 
 
 # ---- wiring: config, procedure tools, alignctl analyze -------------------------------------

@@ -65,12 +65,27 @@ def test_the_procedures_grabs_are_the_views_and_failures_are_shown() -> None:
     cameras["top"].open()
     frame = cameras["top"].grab()  # what a sweep does
     got = live.get("top")
-    assert got is not None and got.image is frame.image and cam.opens == 1
+    assert got is not None and got.image is not None and cam.opens == 1
+    assert np.shares_memory(got.image, frame.image)  # the same frame, not a copy
     grab_previews(cameras, live)  # what the idle worker does
-    assert int(live.get("top").image[0, 0]) == 2 and cam.grabs == 2  # type: ignore[union-attr]
+    assert int(live.get("top").image[0, 0]) == 2 and cam.grabs == 2  # type: ignore[union-attr, index]
     cam.broken = True
     grab_previews(cameras, live)  # must not raise
     failed = live.get("top")
     assert failed is not None and "no frame within" in str(failed.error)
     assert int(failed.image[0, 0]) == 2  # type: ignore[index]  # the last good frame stays
     assert len(live.drain_grab_seconds()) == 2 and live.drain_grab_seconds() == []
+
+
+def test_the_web_cannot_write_into_the_procedures_frame() -> None:
+    """The live view reads (and tracks on) the same array the procedure measures, from
+    another thread, without a copy: it gets it read-only."""
+    live = LiveFrames()
+    tapped = TappedCamera("top", CountingCamera(), live)
+    frame = tapped.grab()
+    shown = live.get("top")
+    assert shown is not None and shown.image is not None
+    assert np.shares_memory(shown.image, frame.image)  # no copy per grab
+    with pytest.raises(ValueError, match="read-only"):
+        shown.image[0, 0] = 255
+    assert frame.image.flags.writeable and int(frame.image[0, 0]) == 1

@@ -20,6 +20,7 @@ or a device error stops every axis. The simulator's truth is read only after the
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -29,10 +30,12 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from alignd.config import AligndConfig
 from alignd.errors import AligndError, ConfigError, DeviceError, StateError, VisionError
 from alignd.procedures.angles import AngleMap
+from alignd.procedures.budget import Contribution
 from alignd.procedures.calibrate import Calibration, calibrate, configured_pixel_size_um
 from alignd.procedures.commission import CommissionRecord
 from alignd.procedures.decision import Decision, decide
@@ -40,8 +43,15 @@ from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.result import RunResult, Verdict
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
-from alignd.procedures.runout import RunoutMap
-from alignd.procedures.sweep import CentrePool, Measurement, SweepPlan, grab_fresh, measure
+from alignd.procedures.runout import WELL_SEPARATED_DEG, RunoutMap
+from alignd.procedures.sweep import (
+    CentrePool,
+    Measurement,
+    SweepPlan,
+    grab_fresh,
+    measure,
+    sweep_runout,
+)
 from alignd.procedures.tools import Tools, default_tools
 from alignd.textfmt import identity_text
 
@@ -59,6 +69,16 @@ HOLDER_LOOK_FRAMES = 3
 # map (``alignctl commission``) each sweep is corrected and the floor is measured.
 SOFT_LIMIT_MARGIN_DEG = 0.1
 MAX_CENTRE_JUMPS = 2  # a centre that jumps once may be a bump; twice, something is loose
+# the sweeps disagree with the runout map: a wide sweep's centre against the narrower
+# sweeps' beyond this chi-square quantile in MAP_DISAGREE_SWEEPS consecutive sweeps (or one
+# centre jump with a map)
+MAP_DISAGREE_P = 0.99
+MAP_DISAGREE_SWEEPS = 2
+MAP_DISAGREE_P_ONCE = 0.999  # ... or beyond this quantile once
+# a refresh maps the error motion in the run: over at least this span (the harmonics
+# separate from the axis and the arm, runout.WELL_SEPARATED_DEG), in these steps
+REFRESH_STEP_DEG = 10.0
+REFRESH_MAX_HALF_DEG = 165.0
 
 
 class _Stop(AligndError):
@@ -85,6 +105,8 @@ class _State:
     compute_s: float = 0.0
     motion_s: float = 0.0
     centre_jumps: int = 0  # sweeps whose centre disagreed with the pool (axis cannot move)
+    map_disagree: int = 0  # consecutive sweeps whose centres disagreed with the runout map
+    runout_refresh: dict[str, Any] | None = None  # what a refresh (or its refusal) found
 
 
 def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
@@ -141,6 +163,11 @@ class _Run:
         self.systematic_um = (cfg.procedure.systematic_um if systematic_um is None
                               else systematic_um)
         self.pool = CentrePool()
+        # the pool holds sweeps of one width: the runout map's residual biases the centres
+        # of different widths differently (more the narrower), so a wider sweep starts a
+        # new pool, and the narrower sweeps' centre is kept to test the map against
+        self.pool_half: float | None = None
+        self.narrow: tuple[np.ndarray, np.ndarray] | None = None  # centre, cov (image px)
         self.commission = commission
         if commission is not None:
             self.angle_map = commission.angle_map(f"commission run {commission.run_id}")
@@ -221,6 +248,7 @@ class _Run:
             "budget": None if final is None else final.budget.to_dict(),
             "decision": None if final is None else self._decision(final).to_dict(),
             "runout_map": None if self.runout is None else self.runout.to_json(),
+            "runout_refresh": self.st.runout_refresh,
             "moves": self.st.iterations, "sweeps": self.st.sweeps,
             "compute_s": self.st.compute_s, "motion_s": self.st.motion_s,
             "tools": (self.tools.names if self.tools else None),
@@ -267,15 +295,25 @@ class _Run:
         n = self.st.sweeps
         px = (self.st.calibration.pixel_size_um if self.st.calibration is not None
               else configured_pixel_size_um(self.cfg))
+        if (self.pool_half is not None and self.plan.half_deg != self.pool_half
+                and self.pool.items and self.st.last is not None):
+            p = self.pool.pooled()
+            self.narrow = (p.center_px, p.cov_px2 + self._floor_px2(self.st.last))
+            self.pool = CentrePool()
+        self.pool_half = self.plan.half_deg
         _data, m, warning = measure(
             self.rig, self.cfg, self.tools, kind=kind, iteration=n, abort=self.abort,
             progress=self._progress_safe, recorder=self.recorder, pixel_size_um=px,
             pool=self.pool, floor_um=self.systematic_um, angle_map=self.angle_map,
-            runout=self.runout, plan=self.plan)
+            runout=self.runout, plan=self.plan, approach=self._approach())
         if warning:
             self._warn(warning)
             if "moved between sweeps" in warning:
                 self.st.centre_jumps += 1
+        if self.runout is not None and self._map_disagrees(warning, m) \
+                and self._refresh_runout():
+            self.st.compute_s += m.compute_s
+            return self._measure(kind)  # the centre again, with the refreshed map
         self.st.compute_s += m.compute_s
         self.st.motion_s += m.timings.get("motion_s", 0.0)
         self.st.last = m
@@ -283,6 +321,121 @@ class _Run:
         self._emit("solve", f"{kind} sweep {n}: {d.text()} (centre over {m.n_sweeps} "
                    f"sweep(s))", m=m, iteration=n)
         return m
+
+    def _predicted(self, cal: Calibration, m: Measurement,
+                   ds: np.ndarray) -> Measurement | None:
+        """The offset after a small move, predicted from the measurement before it, when
+        that decides (else None: a sweep must measure it).
+
+        Small: the calibration's scale error on the move is below half the stages'
+        repeatability, so the stages' landing scatter is what the move adds to the
+        measurement's uncertainty: the measured position holds the old landing error and
+        the move replaces it by a new one, ``stage_repeatability_um`` times sqrt(2) per
+        axis (the budget's "stage repeatability"). Decides: within under the decision
+        rule, U at most ``target_u_fraction`` of the tolerance, and no further move would
+        gain more than the repeatability."""
+        rep = self.p.stage_repeatability_um
+        if not self.p.predict_after_small_move or self.p.decision_rule != "guarded":
+            return None
+        moved_px = cal.predict(ds)
+        moved_um = float(np.hypot(*moved_px)) / m.scale_px_per_mm * 1000.0
+        u_scale = cal.sigma_rel * moved_um
+        if u_scale > 0.5 * rep:
+            return None
+        off_px = m.offset_px + moved_px
+        # the measured position holds the old landing error, the new one replaces it:
+        # the change is off by both, rep sqrt(2) per axis
+        add = (2.0 * rep**2 + u_scale**2 / 2.0) * np.eye(2)
+        landing = Contribution("stage repeatability", math.sqrt(float(np.trace(add))), "B",
+                               f"landing scatter of the last move ({rep:g} um x sqrt 2 per axis; "
+                               f"the verdict is predicted after a {moved_um:.1f} um move)")
+        items = (*(c for c in m.budget.items if c.name != "stage repeatability"), landing)
+        pred = dataclasses.replace(
+            m, offset_px=off_px, offset_um=off_px / m.scale_px_per_mm * 1000.0,
+            cov_offset_um2=m.cov_offset_um2 + add,
+            budget=dataclasses.replace(m.budget, items=items), predicted=True,
+            moved_um=moved_um)
+        pred.p_within = None
+        d = self._decision(pred)
+        if (not d.conforms or pred.U_um > self.p.target_u_fraction * self.tol
+                or self._gain(pred) > rep):
+            return None
+        return pred
+
+    @staticmethod
+    def _floor_px2(m: Measurement) -> np.ndarray:
+        """The runout map's residual on a centre (the budget's residual error motion), as
+        a covariance in image px."""
+        s = m.budget.get("residual error motion") / 1000.0 * m.scale_px_per_mm
+        return (s * s / 2.0) * np.eye(2)
+
+    def _map_disagrees(self, warning: str, m: Measurement) -> bool:
+        """Whether the sweeps disagree with the runout map: a wide sweep's centre against
+        the narrower sweeps' (a map that no longer fits the bearing biases them
+        differently), beyond the ``MAP_DISAGREE_P`` quantile of chi-square with the fits'
+        and the map's own uncertainties in ``MAP_DISAGREE_SWEEPS`` consecutive sweeps, or
+        beyond ``MAP_DISAGREE_P_ONCE`` once; or a centre that jumped (the axis cannot
+        move)."""
+        beyond = far = False
+        if self.narrow is not None and self.pool.items:
+            c, cov, _ = self.pool.items[-1]
+            d = c - self.narrow[0]
+            S = self.narrow[1] + cov + self._floor_px2(m)
+            chi2 = float(d @ np.linalg.solve(S, d))
+            beyond = chi2 > float(chi2_dist.ppf(MAP_DISAGREE_P, 2))
+            far = chi2 > float(chi2_dist.ppf(MAP_DISAGREE_P_ONCE, 2))
+        jumped = "moved between sweeps" in warning
+        self.st.map_disagree = self.st.map_disagree + 1 if beyond or jumped else 0
+        return self.st.runout_refresh is None and (
+            jumped or far or self.st.map_disagree >= MAP_DISAGREE_SWEEPS)
+
+    def _refresh_runout(self) -> bool:
+        """Map the error motion again in this run (once) with a sweep over most of a turn,
+        or, where the soft limits or the conventions forbid it, drop the map (the assumed
+        floor stands in) and say that the rig needs commissioning again. Either way the
+        pool starts over (its centres were corrected with the old map) and the caller
+        measures again."""
+        assert self.tools is not None and self.runout is not None
+        why = (f"the sweeps disagree with the runout map (wide and narrow sweeps' centres "
+               f"apart beyond the {100 * MAP_DISAGREE_P:g} % point of chi-square in "
+               f"{self.st.map_disagree} consecutive sweep(s), beyond the "
+               f"{100 * MAP_DISAGREE_P_ONCE:g} % point once, or a centre jump): the "
+               "turntable's error motion has changed since commissioning")
+        tt = self.rig.axis("turntable").config
+        lim = tt.soft_limits
+        half = min(REFRESH_MAX_HALF_DEG, -lim.min - tt.backlash_approach - SOFT_LIMIT_MARGIN_DEG,
+                   lim.max - tt.backlash_approach - SOFT_LIMIT_MARGIN_DEG)
+        plain = self.angle_map.sign == 1 and abs(self.angle_map.scale - 1.0) < 1e-3
+        if 2 * half < WELL_SEPARATED_DEG or not plain:
+            cause = (f"the turntable's soft limits allow +-{half:.0f} deg, too little to map it "
+                     f"here (at least {WELL_SEPARATED_DEG:g} deg)" if plain else
+                     "this rig's turntable conventions are the commission record's")
+            self.st.runout_refresh = {"refreshed": False, "reason": why, "note": cause}
+            self._warn(f"{why}; {cause}: the map is no longer used in this run (the error "
+                       f"motion is the assumed procedure.systematic_um "
+                       f"{self.systematic_um:g} um); re-run alignctl commission")
+            self.runout = None  # a map known to be wrong would bias every verdict
+            self.pool = CentrePool()
+            self.narrow = None
+            return True
+        self._emit("sweep", f"{why}; refreshing the runout map over +-{half:.0f} deg")
+        old = self.runout
+        new = sweep_runout(self.rig, self.cfg, self.tools, half_deg=half,
+                           step_deg=REFRESH_STEP_DEG, frames_per_step=2, abort=self.abort,
+                           progress=self._progress_safe, recorder=self.recorder)
+        self.runout = new
+        self.pool = CentrePool()
+        self.narrow = None  # corrected with the old map
+        self.st.map_disagree = 0
+        self.st.runout_refresh = {"refreshed": True, "reason": why, "half_deg": half,
+                                  "old_amplitude_um": old.amplitude_um,
+                                  "new_amplitude_um": new.amplitude_um,
+                                  "new_residual_um": new.residual_um}
+        self._warn(f"{why}: refreshed the runout map from a +-{half:.0f} deg sweep (peak "
+                   f"{old.amplitude_um:.1f} -> {new.amplitude_um:.1f} um) and measured the "
+                   "centre again; the refreshed map serves this run only: re-run alignctl "
+                   "commission to keep it")
+        return True
 
     def _decision(self, m: Measurement) -> Decision:
         return decide(m.norm_um, m.U_um, self.tol, self.p.decision_rule)
@@ -297,16 +450,45 @@ class _Run:
                           + (rel * m.norm_um) ** 2)
         return m.norm_um - after
 
+    def _widest_deg(self) -> float:
+        """The widest sweep half-width allowed: ``procedure.max_sweep_deg`` inside the
+        turntable's soft limits (less the backlash pre-move and a margin)."""
+        tt = self.rig.axis("turntable").config
+        lim = tt.soft_limits
+        both = self.p.alternate_sweeps  # a pre-move past either end
+        room = min(-lim.min - (tt.backlash_approach if tt.approach == "+" or both else 0.0),
+                   lim.max - (tt.backlash_approach if tt.approach == "-" or both else 0.0))
+        return max(min(self.p.max_sweep_deg or self.p.sweep_deg, room - SOFT_LIMIT_MARGIN_DEG),
+                   self.p.sweep_deg)
+
+    def _verdict_plan(self) -> SweepPlan:
+        """The plan of a sweep that is to decide (a check's, the sweep after a correction
+        move under guarded acceptance): the widest allowed, because the map's floor falls
+        with the swept angle and a sweep that can decide saves the sweeps of the ladder;
+        ``verdict_frames_per_step`` frames a step (a frame costs a frame period, a step a
+        move). Simple acceptance does not need a small U: the configured plan."""
+        fps = max(self.plan.frames_per_step,
+                  min(self.p.verdict_frames_per_step, self.p.max_frames_per_step))
+        if self.p.decision_rule != "guarded" or (self.plan.half_deg >= self._widest_deg()
+                                                 and self.plan.frames_per_step >= fps):
+            return self.plan
+        steps = (self.plan.steps if self.plan.half_deg >= self._widest_deg()
+                 else self.p.verdict_sweep_steps or self.plan.steps)
+        return SweepPlan(max(self._widest_deg(), self.plan.half_deg), steps, fps)
+
+    def _approach(self) -> Literal["+", "-"] | None:
+        """The sweep's direction: from the end nearer the turntable (None: the axis' own)."""
+        if not self.p.alternate_sweeps:
+            return None
+        tt = self.rig.axis("turntable")
+        return "-" if tt.position() > 0.0 else "+"
+
     def _better_plan(self) -> SweepPlan | None:
         """The next step up in measurement quality within the limits, or None at the top:
         a wider sweep first (the centre's uncertainty falls with the swept angle), then
         more frames per step (the tracking noise falls with their root)."""
         cur = self.plan
-        tt = self.rig.axis("turntable").config
-        lim = tt.soft_limits
-        room = min(-lim.min - (tt.backlash_approach if tt.approach == "+" else 0.0),
-                   lim.max - (tt.backlash_approach if tt.approach == "-" else 0.0))
-        widest = min(self.p.max_sweep_deg or self.p.sweep_deg, room - SOFT_LIMIT_MARGIN_DEG)
+        widest = self._widest_deg()
         if cur.half_deg < widest - 1e-6:
             return SweepPlan(min(widest, 2.0 * cur.half_deg), cur.steps, cur.frames_per_step)
         if cur.frames_per_step < self.p.max_frames_per_step:
@@ -331,6 +513,8 @@ class _Run:
         need = abs(self.tol - m.norm_um)
         if self.p.decision_rule != "guarded" or 2.0 * u_floor < need:
             return ""
+        if self.plan.half_deg < self._widest_deg() - 1e-6:
+            return ""  # the map's floor falls with the swept angle: a wider sweep may decide
         fix = ("re-run alignctl commission" if self.runout is not None
                else "commission the rig (alignctl commission) for a runout map")
         return (f"the residual error motion alone gives U >= {2.0 * u_floor:.1f} um, more "
@@ -419,6 +603,7 @@ class _Run:
             self._warn(f"pre-check: {msg}")
 
     def _check(self) -> tuple[Verdict, str, Measurement]:
+        self.plan = self._verdict_plan()  # one sweep that can decide, not a ladder
         while True:
             m = self._measure("check")
             if m.sigma_centre_um > self.p.max_center_sigma_um:
@@ -527,6 +712,18 @@ class _Run:
                     raise _Stop("not_converged", f"{reason} (offset {m.norm_um:.1f} um)", m)
             ds_actual, move_rec = self._correct(cal, m, self.st.iterations + 1)
             self.st.iterations += 1
+            pred = self._predicted(cal, m, ds_actual)
+            if pred is not None:  # the move was small and its outcome decides: no sweep
+                self._record("align", m, **extra, action="move", **move_rec,
+                             next="verdict predicted after the move")
+                self.st.last = pred
+                return ("aligned", f"{self._decision(pred).text()}; predicted after the "
+                        f"last move of {pred.moved_um:.1f} um (the stages' landing scatter "
+                        f"in U); {self._tally()}", pred)
+            nxt = self._verdict_plan()  # the sweep after a move is the verdict's candidate
+            if nxt != self.plan:
+                self.plan = nxt
+                move_rec["next"] = f"the sweep after the move over +-{nxt.half_deg:g} deg"
             self._record("align", m, **extra, action="move", **move_rec)
             prev, ds_prev, extra = m, ds_actual, {}
             m = self._measure("align")

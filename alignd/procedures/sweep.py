@@ -248,6 +248,8 @@ class Measurement:
     plan: SweepPlan | None = None
     runout_corrected: bool = False
     excess_um: float = 0.0  # between-sweep scatter beyond the fits' own (1 sigma per axis)
+    predicted: bool = False  # the offset after a small move, predicted (no sweep after it)
+    moved_um: float = 0.0  # that move's length
 
     @property
     def norm_um(self) -> float:
@@ -285,6 +287,7 @@ class Measurement:
             "p_within": self.p_within, "sigma_random_um": self.sigma_random_um,
             "plan": None if self.plan is None else self.plan.to_dict(),
             "runout_corrected": self.runout_corrected, "excess_um": self.excess_um,
+            "predicted": self.predicted, "moved_um": self.moved_um,
         }
 
 
@@ -413,18 +416,20 @@ def sweep_angles(cfg: AligndConfig, centre_deg: float = 0.0) -> np.ndarray:
 def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: int,
               abort: threading.Event | None, progress: ProgressCallback,
               recorder: RunRecorder, frames_per_step: int = 1,
-              angles: np.ndarray | None = None) -> SweepData:
+              angles: np.ndarray | None = None,
+              approach: Literal["+", "-"] | None = None) -> SweepData:
     """Turn through the sweep, grabbing and tracking settled frames at every step.
 
     ``angles`` default to the configured sweep. With ``frames_per_step`` > 1 the corners of
     the frames at one step are averaged (the sensor noise is independent per frame; the
-    pose is the same).
+    pose is the same). ``approach`` turns the sweep in that direction, every step
+    approached from that side (default: the turntable's configured approach).
     """
     tt = rig.axis("turntable")
     cam = rig.camera("top")
     assert cam is not None  # validate_rig guarantees it
     angles = sweep_angles(cfg) if angles is None else np.asarray(angles, float)
-    if tt.config.approach == "-":
+    if (approach or tt.config.approach) == "-":
         angles = angles[::-1]
     n = len(angles)
     points = np.full((n, 4, 2), np.nan)
@@ -434,7 +439,8 @@ def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration
     for i, a in enumerate(angles):
         check_abort(abort)
         t0 = time.perf_counter()
-        readback.append(tt.move_to(float(a)))
+        readback.append(tt.move_to(float(a)) if approach is None
+                        else tt.move_to(float(a), approach))
         settled = time.monotonic()
         t1 = time.perf_counter()
         t_motion += t1 - t0
@@ -628,7 +634,8 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
             pool: CentrePool | None = None, frames_per_step: int = 1,
             floor_um: float = 0.0, rectify: bool = True, angle_map: AngleMap | None = None,
             runout: RunoutMap | None = None, holder: HolderConfig | None = None,
-            plan: SweepPlan | None = None) -> tuple[SweepData, Measurement, str]:
+            plan: SweepPlan | None = None,
+            approach: Literal["+", "-"] | None = None) -> tuple[SweepData, Measurement, str]:
     """Sweep, check the tracking and the angles, correct for the runout map, solve the
     centre (pooled), locate the target.
 
@@ -638,8 +645,9 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     corners are moved back by the error motion at its read-back angle before anything is
     fitted, so the centre is the mean axis of rotation; the floor is then the map's
     uncertainty (plus the sweep-to-sweep excess), else ``floor_um``. ``holder`` replaces
-    ``cfg.holder`` (a commissioned holder size). Returns the raw data (angles in the image
-    convention), the measurement and a warning ('' if none).
+    ``cfg.holder`` (a commissioned holder size). ``approach``: the sweep's direction
+    (``run_sweep``). Returns the raw data (angles in the image convention), the
+    measurement and a warning ('' if none).
     """
     p = cfg.procedure
     plan = plan or SweepPlan(p.sweep_deg, p.sweep_steps, frames_per_step)
@@ -647,7 +655,9 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     holder = holder or cfg.holder
     raw = run_sweep(rig, cfg, tools, kind=kind, iteration=iteration, abort=abort,
                     progress=progress, recorder=recorder,
-                    frames_per_step=plan.frames_per_step, angles=plan.angles())
+                    frames_per_step=plan.frames_per_step, angles=plan.angles(),
+                    approach=approach)
+    raw = dataclasses.replace(raw, points=_one_corner_order(raw))
     data = dataclasses.replace(raw, readback_deg=amap.image_angles(raw.readback_deg).tolist())
     n_ok = int(data.tracked.sum())
     n = len(data.readback_deg)
@@ -717,6 +727,19 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
                  "grab_s": data.grab_s, "motion_s": data.motion_s}
     m.compute_s = data.track_s + (t2 - t0)
     return data, m, warning
+
+
+def _one_corner_order(data: SweepData) -> np.ndarray:
+    """The corners of every frame in the order of the frame nearest turntable 0 (the
+    holder frame of the config): a tracker may restart its order when the holder has
+    turned far, as over a +-45 deg sweep, which would turn the target round the holder."""
+    from alignd.procedures.angles import consistent_order
+
+    ok = np.flatnonzero(data.tracked)
+    if len(ok) == 0:
+        return data.points
+    ref = int(ok[np.argmin(np.abs(np.asarray(data.readback_deg)[ok]))])
+    return consistent_order(data.points, ref)
 
 
 def sweep_runout(rig: Rig, cfg: AligndConfig, tools: Tools, *, half_deg: float = 180.0,

@@ -139,9 +139,11 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     """The real vision and solver (imported here, so the procedures load without them).
 
     With a config the tracker knows the holder's size in px (``holder.size_mm`` and the top
-    camera's ``pixel_size_um``: a target of another size is never taken for the holder)
-    and seeds each frame's search with the previous frame's corners; the side camera's
-    regions of interest come from ``side_camera``.
+    camera's ``pixel_size_um``): the full search looks for a rectangle of that size
+    (within ``SIZE_TOLERANCE``: a configured pixel size that is a few per cent off, as
+    commissioning accepts, still finds the holder) and a target of another size is never
+    taken for the holder; each frame's search is seeded with the previous frame's corners.
+    The side camera's regions of interest come from ``side_camera``.
     """
     from alignd import solve as solver
     from alignd.errors import StateError, VisionError
@@ -159,7 +161,8 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     def track(frame: Frame) -> Corners:
         hint = last[0] if last else None
         try:
-            det = vision.track_holder(frame.gray, hint=hint)
+            det = vision.track_holder(frame.gray, expected_size_px=expected, hint=hint,
+                                      size_tolerance=SIZE_TOLERANCE)
         except VisionError as exc:
             return Corners(np.full((4, 2), np.nan), False, 0.0, str(exc))
         out = as_corners(det)

@@ -203,8 +203,22 @@ def _noise_sigma(img: np.ndarray) -> float:
 _SHIFTS = np.stack(np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)), -1).reshape(-1, 2).astype(float)
 
 
+@dataclass(frozen=True)
+class _EdgeMap:
+    """Significant, thin edge pixels of a 1/4-scale frame: where, which way, how strong."""
+
+    xs: np.ndarray
+    ys: np.ndarray
+    nx: np.ndarray  # unit gradient
+    ny: np.ndarray
+    mag: np.ndarray
+    gx: np.ndarray  # the whole gradient images
+    gy: np.ndarray
+    near_edge: np.ndarray  # edge pixels grown by 1 px
+
+
 def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
-                     min_contrast: float, max_peaks: int = 12
+                     min_contrast: float, max_peaks: int = 12, size_tolerance: float = 0.12
                      ) -> list[tuple[float, np.ndarray, str]]:
     """Rectangles of the expected size found by centre voting, threshold-ladder free.
 
@@ -213,14 +227,16 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
     side (short or long) away along its gradient, with the opposite gradient, votes for
     the midpoint: the holder's long sides vote along its long midline and its short sides
     along the short one, so its centre is where the two cross; edges of anything else
-    scatter or do not pair. At each
-    peak the side directions are the dominant gradient orientation (mod 90 deg) around it,
-    and the long side is the assignment whose outline has the stronger gradient.
+    scatter or do not pair. The pairing needs the side to within about 1 px at 1/4 scale
+    (2 % of a 160 px side), much less than ``size_tolerance``: a configured pixel size a
+    few per cent off (commissioning passes 5 %) would pair nothing. So the holder's scale
+    in the image is measured first (:func:`_pair_scales`) and the votes cast at that size.
+    At each peak the side directions are the dominant gradient orientation (mod 90 deg)
+    around it, and the long side is the assignment whose outline has the stronger gradient.
     """
     h, w = gray.shape
     small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
     small = cv2.GaussianBlur(small, (0, 0), 0.8)
-    sh, sw = small.shape
     gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3)
     mag = cv2.magnitude(gx, gy)
@@ -234,20 +250,72 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
     if xs.size < 20:
         return []
     m = mag[ys, xs]
-    nx, ny = gx[ys, xs] / m, gy[ys, xs] / m
+    em = _EdgeMap(xs, ys, gx[ys, xs] / m, gy[ys, xs] / m, m, gx, gy,
+                  cv2.dilate(edges, np.ones((3, 3), np.uint8)) > 0)
     eL, eS = max(expected_size_px) / _DOWN, min(expected_size_px) / _DOWN
+    out = []
+    scales = _pair_scales(em, (eS, eL), size_tolerance)
+    for scale in scales:  # as many peaks in all as one size had
+        out += _vote_at_size(em, eL * scale, eS * scale, max_peaks // len(scales))
+    out.sort(key=lambda t: -t[0])
+    return out
+
+
+def _partners(em: _EdgeMap, dist: np.ndarray, step: int = 1) -> np.ndarray:
+    """(N / step, len(dist)) bool: edge pixel i (every ``step``-th) has a partner edge,
+    gradient the other way, ``dist[j]`` px away along its gradient (negative: against it)."""
+    sh, sw = em.near_edge.shape
+    xs, ys, nx, ny = em.xs[::step], em.ys[::step], em.nx[::step], em.ny[::step]
+    qx = np.rint(xs[:, None] + dist[None] * nx[:, None]).astype(np.intp)
+    qy = np.rint(ys[:, None] + dist[None] * ny[:, None]).astype(np.intp)
+    hit = (qx >= 0) & (qx < sw) & (qy >= 0) & (qy < sh)
+    hit[hit] = em.near_edge[qy[hit], qx[hit]]
+    qgx, qgy = em.gx[qy[hit], qx[hit]], em.gy[qy[hit], qx[hit]]
+    pnx = np.broadcast_to(nx[:, None], hit.shape)[hit]
+    pny = np.broadcast_to(ny[:, None], hit.shape)[hit]
+    hit[hit] = (qgx * pnx + qgy * pny) < -0.7 * np.hypot(qgx, qgy)
+    return hit
+
+
+def _pair_scales(em: _EdgeMap, sides: tuple[float, float], tolerance: float) -> list[float]:
+    """The holder's size in the image over the expected size (within ``tolerance``), as
+    measured from the distances at which opposite edges pair, and 1 (the expected size
+    itself: a busy scene can outscore the holder's pairs) when that differs.
+
+    For each side (short, long) the partners every edge pixel has within the tolerance are
+    counted per distance (1/4-scale px). Every pair of the holder's sides gives a narrow
+    peak (3 px: the grown edge), other edges a broad background that grows with the
+    distance; a [1, 2, 1] filter less an 11 px mean keeps the peaks. A ratio scores the
+    geometric mean of both sides' peaks there: the holder pairs at the same ratio on
+    both, other things rarely do.
+    """
+    grid = np.arange(1 - tolerance, 1 + tolerance + 1e-9, 0.005)
+    score = np.ones_like(grid)
+    for e in sides:
+        dist = np.arange(math.floor(e * (1 - tolerance)) - 6,
+                         math.ceil(e * (1 + tolerance)) + 7, dtype=float)
+        # every other edge pixel: the holder's sides have hundreds, and it halves the cost
+        counts = (_partners(em, dist, 2).sum(axis=0) + _partners(em, -dist, 2).sum(axis=0)
+                  ).astype(float)
+        peak = (np.convolve(counts, [0.25, 0.5, 0.25], "same")
+                - np.convolve(counts, np.ones(11) / 11, "same"))
+        score *= np.clip(np.interp(grid * e, dist, peak), 0.0, None)
+    k = int(np.argmax(score))
+    if score[k] <= 0 or abs(grid[k] - 1.0) < 0.005:
+        return [1.0]
+    return [float(grid[k]), 1.0]
+
+
+def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int
+                  ) -> list[tuple[float, np.ndarray, str]]:
+    """Centre voting (see :func:`_vote_candidates`) for a holder of eL x eS (1/4-scale px)."""
+    xs, ys, nx, ny, m, gx, gy = em.xs, em.ys, em.nx, em.ny, em.mag, em.gx, em.gy
+    sh, sw = em.near_edge.shape
     acc = np.zeros(sh * sw, np.float64)
-    near_edge = cv2.dilate(edges, np.ones((3, 3), np.uint8)) > 0
     for d in (eS / 2, eL / 2, -eS / 2, -eL / 2):
         # only where the opposite side is there too: an edge a whole side away, its
         # gradient the other way (a circle, a single edge or another size does not pair)
-        qx = np.rint(xs + 2 * d * nx).astype(np.int64)
-        qy = np.rint(ys + 2 * d * ny).astype(np.int64)
-        ok = (qx >= 0) & (qx < sw) & (qy >= 0) & (qy < sh)
-        ok[ok] &= near_edge[qy[ok], qx[ok]]
-        qgx, qgy = gx[qy[ok], qx[ok]], gy[qy[ok], qx[ok]]
-        opposite = (qgx * nx[ok] + qgy * ny[ok]) < -0.7 * np.hypot(qgx, qgy)
-        ok[ok] = opposite
+        ok = _partners(em, np.array([2 * d]))[:, 0]
         cx = np.rint(xs[ok] + d * nx[ok]).astype(np.int64)
         cy = np.rint(ys[ok] + d * ny[ok]).astype(np.int64)
         acc += np.bincount(cy * sw + cx, minlength=sh * sw)
@@ -386,7 +454,8 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     check_usable(gray, min_contrast, "top image")
     cands: list[tuple[float, np.ndarray, str]] = []
     if expected_size_px is not None:
-        cands += _vote_candidates(gray, expected_size_px, min_contrast)
+        cands += _vote_candidates(gray, expected_size_px, min_contrast,
+                                  size_tolerance=size_tolerance)
     cands += _candidates(gray, expected_size_px, polarity)
     tried: list[np.ndarray] = []
     last: HolderDetection | None = None

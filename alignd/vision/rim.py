@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.special import erfc
 
 from alignd.errors import VisionError
 from alignd.vision.edges import EdgePoints, area_crossings, as_gray, check_usable
@@ -166,7 +167,11 @@ class RimFit:
 
 
 def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
-    """The largest well-fitting elliptical contour at 1/4 scale, as a full-res conic."""
+    """The rim at 1/4 scale, as a full-res conic: elliptical contours of either polarity
+    at a ladder of thresholds, with and without thin structures (cables) opened and
+    closed away, each checked against the image (:func:`_edge_support`); the best
+    supported wins, the outermost of those about as well supported (a rim ring's outer
+    edge, not its inner one)."""
     h, w = gray.shape
     f = 4
     small = cv2.resize(gray, (w // f, h // f), interpolation=cv2.INTER_AREA)
@@ -176,36 +181,91 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
         raise VisionError("rim image: too little contrast for a rim")
     u8 = np.clip((small - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
     sh, sw = u8.shape
-    best = None
+    ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    cands: list[tuple[float, np.ndarray, np.ndarray]] = []  # (points, params, full-res pts)
     for thr in range(32, 240, 32):
         for mask in (u8 < thr, u8 > thr):
-            cnts, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST,
-                                       cv2.CHAIN_APPROX_NONE)
-            for cnt in cnts:
-                if cnt.shape[0] < 40:
-                    continue
-                pts = cnt[:, 0, :].astype(float)
-                inner = ((pts[:, 0] > 1) & (pts[:, 0] < sw - 2) & (pts[:, 1] > 1)
-                         & (pts[:, 1] < sh - 2))
-                if inner.mean() < 0.6 or inner.sum() < 40:
-                    continue
-                pts = pts[inner]
-                fit = _robust_ellipse(pts)
-                if fit is None:
-                    continue
-                k, keep = fit
-                _ctr, (a, b), _ = _conic_params(k)
-                if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
-                    continue
-                # the longest elliptical trace wins: a holder, cable or shadow merged with
-                # the disc at this threshold only removes its points, not the rim's
-                score = float(keep.sum())
-                if best is None or score > best[0]:
-                    best = (score, pts[keep])
-    if best is None:
+            m8 = mask.astype(np.uint8)
+            m_oc = cv2.morphologyEx(cv2.morphologyEx(m8, cv2.MORPH_OPEN, ker),
+                                    cv2.MORPH_CLOSE, ker)
+            for m in (m8, m_oc):
+                cnts, _ = cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+                for cnt in cnts:
+                    if cnt.shape[0] < 40:
+                        continue
+                    pts = cnt[:, 0, :].astype(float)
+                    inner = ((pts[:, 0] > 1) & (pts[:, 0] < sw - 2) & (pts[:, 1] > 1)
+                             & (pts[:, 1] < sh - 2))
+                    if inner.mean() < 0.6 or inner.sum() < 40:
+                        continue
+                    pts = pts[inner]
+                    fit = _robust_ellipse(pts, min_cover=0.3)
+                    if fit is None:
+                        continue
+                    k, keep = fit
+                    try:
+                        ctr, (a, b), ang = _conic_params(k)
+                    except (VisionError, np.linalg.LinAlgError):
+                        continue
+                    if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
+                        continue
+                    par = np.array([ctr[0], ctr[1], a, b])
+                    if any(np.max(np.abs(c[1][:4] - par)) < 1.0 for c in cands):
+                        continue  # the same ellipse at another threshold
+                    full = (pts[keep] + 0.5) * f - 0.5
+                    cands.append((float(keep.sum()), np.array([*par, ang]), full))
+    if not cands:
         raise VisionError("rim image: no elliptical rim found")
-    full = (best[1] + 0.5) * f - 0.5
-    return _outer_crossings(gray, fit_ellipse(full), min_contrast)
+    cands.sort(key=lambda c: -c[0])
+    scored = []
+    for _n, _par, full in cands[:10]:
+        try:  # each candidate moved onto the nearest strong step first (an arc's
+            # ellipse may be a few px off elsewhere)
+            k = _outer_crossings(gray, fit_ellipse(full), min_contrast)
+            scored.append((_edge_support(gray, k, min_contrast), k))
+        except (VisionError, np.linalg.LinAlgError):
+            continue
+    if not scored:
+        raise VisionError("rim image: no elliptical rim found")
+    top = max(sc for sc, _ in scored)
+    if top < 0.65:  # the rim: 0.9 and more; contours that strayed: up to 0.55
+        raise VisionError(f"rim image: no elliptical rim found (the best candidate's edge "
+                          f"runs along only {100 * top:.0f} % of it)")
+    near = [(k, _conic_params(k)[1][0]) for sc, k in scored if sc >= top - 0.05]
+    return max(near, key=lambda t: t[1])[0]
+
+
+def _edge_support(gray: np.ndarray, k: np.ndarray, min_contrast: float, n: int = 240
+                  ) -> float:
+    """Fraction of the ellipse k along which the image steps, with one polarity and a
+    like contrast, between 5-8 px inside and 5-8 px outside (a rim does nearly all
+    round; a cable loop or a contour that strays onto a holder or a shadow does not)."""
+    try:
+        ctr, (a, b), ang = _conic_params(k)
+    except (VisionError, np.linalg.LinAlgError):
+        return 0.0
+    phi = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    t = math.radians(ang)
+    c, s = math.cos(t), math.sin(t)
+    u, v = a * np.cos(phi), b * np.sin(phi)
+    px, py = ctr[0] + c * u - s * v, ctr[1] + s * u + c * v
+    nx, ny = c * u / a ** 2 - s * v / b ** 2, s * u / a ** 2 + c * v / b ** 2
+    nn = np.hypot(nx, ny)
+    nx, ny = nx / nn, ny / nn
+    off = np.array([-8.0, -6.5, -5.0, 5.0, 6.5, 8.0], np.float32)
+    mx = (px[:, None] + off[None] * nx[:, None]).astype(np.float32)
+    my = (py[:, None] + off[None] * ny[:, None]).astype(np.float32)
+    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=float("nan"))
+    step = prof[:, 3:].mean(axis=1) - prof[:, :3].mean(axis=1)
+    fin = np.isfinite(step)
+    if fin.sum() < n // 2:
+        return 0.0
+    sign = 1.0 if np.median(step[fin]) > 0 else -1.0
+    st = np.where(fin, sign * step, 0.0)
+    med = float(np.median(st[st > 0])) if np.any(st > 0) else 0.0
+    good = (st >= max(min_contrast, 0.3 * med)) & (st <= 3.0 * med)
+    return float(good.mean())
 
 
 def _refit(pts: np.ndarray, keep: np.ndarray, tol: float
@@ -239,11 +299,12 @@ def _coverage(k: np.ndarray, pts: np.ndarray) -> float:
     return float(np.unique(((ang + np.pi) / (2 * np.pi) * 36).astype(int) % 36).size / 36)
 
 
-def _robust_ellipse(pts: np.ndarray, tol: float = 1.0
+def _robust_ellipse(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
                     ) -> tuple[np.ndarray, np.ndarray] | None:
     """An ellipse through much of ``pts`` (a contour): a fit to all of them, or, when
     something merged with the rim at this threshold, to the best of eight arcs, refitted
-    on its inliers. None unless the inliers cover half the ellipse within 1 px rms."""
+    on its inliers. None unless the inliers cover ``min_cover`` of the ellipse within
+    1 px rms."""
     n = len(pts)
     trials = [np.ones(n, bool)]
     if n >= 160:
@@ -258,7 +319,7 @@ def _robust_ellipse(pts: np.ndarray, tol: float = 1.0
         if fit is None:
             continue
         k, kp = fit
-        if _coverage(k, pts[kp]) < 0.5:
+        if _coverage(k, pts[kp]) < min_cover:
             continue
         if float(np.sqrt(np.mean(_sampson(k, pts[kp]) ** 2))) > 1.0:
             continue
@@ -371,46 +432,313 @@ def _rim_points(gray: np.ndarray, k: np.ndarray, half_width: int, min_contrast: 
     return EdgePoints(np.concatenate(chunks_xy), np.concatenate(chunks_c), False)
 
 
+# ---- sub-pixel refinement: edge profiles along the ellipse, then a geometric fit ----------
+Ellipse = np.ndarray  # (cx, cy, a, b, theta_rad)
+
+
+def _params_from_conic(k: np.ndarray) -> Ellipse:
+    ctr, (a, b), ang = _conic_params(k)
+    return np.array([ctr[0], ctr[1], a, b, math.radians(ang)])
+
+
+def _conic_from_params(p: Ellipse) -> np.ndarray:
+    cx, cy, a, b, t = (float(v) for v in p)
+    c, s = math.cos(t), math.sin(t)
+    M = np.array([[c, -s], [s, c]]) @ np.diag([1 / a ** 2, 1 / b ** 2]) @ np.array(
+        [[c, s], [-s, c]])
+    ctr = np.array([cx, cy])
+    A, B, C = M[0, 0], 2 * M[0, 1], M[1, 1]
+    D, E = -2 * (M @ ctr)
+    F = float(ctr @ M @ ctr) - 1.0
+    k = np.array([A, B, C, D, E, F])
+    return k / np.abs(k).max()
+
+
+def _ellipse_frame(p: Ellipse, x: np.ndarray, y: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Signed distance (px, + outside) of points to the ellipse p, to first order in the
+    normalised radius (exact for a circle), with the points' parametric angle."""
+    cx, cy, a, b, t = p
+    c, s = math.cos(t), math.sin(t)
+    dx, dy = x - cx, y - cy
+    u = c * dx + s * dy
+    v = -s * dx + c * dy
+    un, vn = u / a, v / b
+    rho = np.sqrt(un * un + vn * vn)
+    g = np.sqrt((un / a) ** 2 + (vn / b) ** 2) / np.maximum(rho, 1e-12)
+    return (rho - 1.0) / np.maximum(g, 1e-12), np.arctan2(vn, un), rho
+
+
+def _distance_jacobian(p: Ellipse, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """d(distance)/d(cx, cy, a, b, theta) at the points, by central differences."""
+    steps = (1e-3, 1e-3, 1e-3, 1e-3, 1e-6)
+    cols = []
+    for i, h in enumerate(steps):
+        dp = np.zeros(5)
+        dp[i] = h
+        cols.append((_ellipse_frame(p + dp, x, y)[0] - _ellipse_frame(p - dp, x, y)[0])
+                    / (2 * h))
+    return np.column_stack(cols)
+
+
+@dataclass(frozen=True)
+class _Profiles:
+    """One fitted edge profile per arc segment of the ellipse."""
+
+    xy: np.ndarray  # (K, 2) edge points
+    sigma: np.ndarray  # (K,) standard error of the point along the normal (px)
+    contrast: np.ndarray  # (K,) outside minus inside level (DN)
+    width: np.ndarray  # (K,) edge width s (px, the Gaussian's sigma incl. the pixel)
+    rms: np.ndarray  # (K,) residual rms (DN)
+    phi: np.ndarray  # (K,) parametric angle of the segment
+    ok: np.ndarray  # (K,) bool
+
+
+def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float = 12.0,
+                   iterations: int = 10) -> _Profiles:
+    """Fit I = b0 + b1 d + c0 Phi((d - delta) / s) to the pixels within
+    ``half_band`` px of the ellipse, segment by segment (arcs of ~seg_px): delta is the
+    edge's offset along the normal, d the pixel's signed distance to the ellipse (exact
+    pixel positions, no interpolation). The levels and a slope across the edge absorb
+    lighting gradients, vignetting and either polarity (one slope for both sides: a slope
+    of its own on each side correlates with delta and costs 2.5x in its precision, for a
+    bias that, from a linear light gradient, moves the centre only, not the axes; a
+    texture's slope on one side only is a local error, smaller than that noise)."""
+    h, w = gray.shape
+    cx, cy, a, b, _t = p
+    if not (np.all(np.isfinite(p)) and min(a, b) > 5.0):
+        raise VisionError("rim image: the ellipse fit diverged")
+    r = max(a, b) + half_band + 2
+    x0, x1 = max(int(cx - r), 0), min(int(cx + r) + 2, w)
+    y0, y1 = max(int(cy - r), 0), min(int(cy + r) + 2, h)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    xf, yf = xx.ravel().astype(float), yy.ravel().astype(float)
+    d, phi, _ = _ellipse_frame(p, xf, yf)
+    sel = np.abs(d) <= half_band
+    d, phi = d[sel], phi[sel]
+    val = gray[yy.ravel()[sel], xx.ravel()[sel]].astype(float)
+    perim = math.pi * (3 * (a + b) - math.sqrt((3 * a + b) * (a + 3 * b)))
+    K = max(int(perim / seg_px), 24)
+    seg = (((phi + math.pi) / (2 * math.pi)) * K).astype(int) % K
+    order = np.argsort(seg, kind="stable")
+    d, val, seg = d[order], val[order], seg[order]
+    counts = np.bincount(seg, minlength=K)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    present = counts > 0
+    # a segment needs pixels on both sides of the edge, as many as a full arc holds
+    expect = float(np.median(counts[present])) if present.any() else 0.0
+    n_in = np.bincount(seg, weights=(d < -1.0).astype(float), minlength=K)
+    n_out = np.bincount(seg, weights=(d > 1.0).astype(float), minlength=K)
+    usable = (counts >= max(0.7 * expect, 20)) & (n_in >= 0.3 * counts) & (
+        n_out >= 0.3 * counts)
+    # a clipped (saturated or black) side flattens the step asymmetrically: leave it out
+    clipped = np.bincount(seg, weights=((val >= 254.5) | (val <= 0.5)).astype(float),
+                          minlength=K)
+    usable &= clipped <= 0.02 * counts
+    ids = np.flatnonzero(present)
+    st = starts[ids]
+
+    def segsum(v: np.ndarray) -> np.ndarray:  # sums over each present segment
+        return np.add.reduceat(v, st, axis=0)
+
+    # start: each side's mean level, flat, no offset, s = 1 px
+    P = np.zeros((K, 5))
+    nf = 5
+    P[:, 0] = np.bincount(seg, weights=np.where(d < -1.0, val, 0.0), minlength=K) / np.maximum(
+        n_in, 1)
+    P[:, 2] = np.bincount(seg, weights=np.where(d > 1.0, val, 0.0), minlength=K) / np.maximum(
+        n_out, 1) - P[:, 0]
+    P[:, 4] = 1.0
+    wts = np.ones_like(d)
+    lam = 1e-3
+    res = np.zeros_like(d)
+    for it in range(iterations):
+        b0, b1, c0, dl, s = (P[seg, i] for i in range(5))
+        t = (d - dl) / s
+        F = 0.5 * _erfc(-t / math.sqrt(2))
+        f = np.exp(-0.5 * t * t) / math.sqrt(2 * math.pi)
+        res = val - (b0 + b1 * d + c0 * F)
+        if it >= 3:  # Tukey's biweight on the segment's robust scale: specks, cable edges
+            sc = _seg_scale(res, seg, K) * 4.685
+            u = res / sc[seg]
+            wts = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        J = np.column_stack([np.ones_like(d), d, F, -c0 * f / s, -c0 * f * t / s])
+        Jw = J * wts[:, None]
+        JtJ = segsum(Jw[:, :, None] * J[:, None, :])
+        Jtr = segsum(Jw * res[:, None])
+        diag = np.einsum("kii->ki", JtJ)
+        A = JtJ + lam * diag[:, :, None] * np.eye(nf)[None] + 1e-9 * np.eye(nf)[None]
+        try:
+            step = np.linalg.solve(A, Jtr[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            break
+        step[:, 3] = np.clip(step[:, 3], -1.0, 1.0)
+        P[ids] += step
+        P[ids, 4] = np.clip(P[ids, 4], 0.25, half_band / 1.5)
+    # standard error of delta from the final normal matrix
+    b0, b1, c0, dl, s = (P[seg, i] for i in range(5))
+    t = (d - dl) / s
+    F = 0.5 * _erfc(-t / math.sqrt(2))
+    res = val - (b0 + b1 * d + c0 * F)
+    wsum = np.maximum(segsum(wts), 1.0)
+    rms = np.sqrt(segsum(wts * res * res) / np.maximum(wsum - nf, 1.0))
+    try:
+        cov = np.linalg.inv(JtJ + 1e-9 * np.eye(nf)[None])
+        sig = np.sqrt(np.maximum(cov[:, 3, 3], 0.0)) * rms
+    except np.linalg.LinAlgError:
+        sig = np.full(ids.size, np.inf)
+    K_ok = np.zeros(K, bool)
+    K_ok[ids] = usable[ids] & np.isfinite(sig) & np.all(np.isfinite(P[ids]), axis=1)
+    sigma = np.full(K, np.inf)
+    sigma[ids] = sig
+    rmsK = np.full(K, np.inf)
+    rmsK[ids] = rms
+    phik = (np.arange(K) + 0.5) / K * 2 * math.pi - math.pi
+    cxp, cyp, ap, bp, tp = p
+    u, v = ap * np.cos(phik), bp * np.sin(phik)
+    c_, s_ = math.cos(tp), math.sin(tp)
+    ex, ey = cxp + c_ * u - s_ * v, cyp + s_ * u + c_ * v
+    nx, ny = c_ * u / ap ** 2 - s_ * v / bp ** 2, s_ * u / ap ** 2 + c_ * v / bp ** 2
+    nn = np.hypot(nx, ny)
+    dk = P[:, 3]
+    xy = np.column_stack([ex + dk * nx / nn, ey + dk * ny / nn])
+    return _Profiles(xy, sigma, P[:, 2], P[:, 4], rmsK, phik, K_ok)
+
+
+def _seg_median(v: np.ndarray, seg: np.ndarray, K: int) -> np.ndarray:
+    """Per-segment (upper) median of v; NaN for empty segments."""
+    order = np.lexsort((v, seg))
+    counts = np.bincount(seg, minlength=K)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    out = np.full(K, np.nan)
+    has = counts > 0
+    out[has] = v[order][starts[has] + counts[has] // 2]
+    return out
+
+
+def _seg_scale(res: np.ndarray, seg: np.ndarray, K: int) -> np.ndarray:
+    """Per-segment robust residual scale (1.4826 MAD about 0), floored by half the
+    global one."""
+    a = np.abs(res)
+    glob = float(np.median(a)) * 1.4826 + 0.3  # + a floor: noise-free frames
+    loc = _seg_median(a, seg, K) * 1.4826
+    return np.where(np.isfinite(loc), np.maximum(loc, 0.5 * glob), glob)
+
+
+def _erfc(x: np.ndarray) -> np.ndarray:
+    return np.asarray(erfc(x))
+
+
+def _geometric_fit(p: Ellipse, xy: np.ndarray, sigma: np.ndarray, iterations: int = 12
+                   ) -> tuple[Ellipse, np.ndarray]:
+    """Ellipse through the points minimising their weighted orthogonal distances
+    (Gauss-Newton from a close start), with Tukey's biweight on the normalised residuals;
+    returns the parameters and the inliers (within 3.5 robust sigma)."""
+    p = np.array(p, float)
+    sig = np.maximum(sigma, 0.5 * float(np.median(sigma)) + 0.002)
+    z = np.zeros(len(xy))
+    sc = 1.0
+    for _ in range(iterations):
+        z = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0] / sig
+        sc = max(float(np.median(np.abs(z))) * 1.4826, 0.7)
+        u = z / (4.685 * sc)
+        wts = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        J = _distance_jacobian(p, xy[:, 0], xy[:, 1]) / sig[:, None]
+        Jw = J * wts[:, None]
+        try:
+            step = np.linalg.solve(Jw.T @ J + 1e-9 * np.eye(5), -(Jw.T @ z))
+        except np.linalg.LinAlgError:
+            break
+        p = p + step
+        if not (np.all(np.isfinite(p)) and min(p[2], p[3]) > 5.0):
+            raise VisionError("rim image: the ellipse fit diverged")
+        if np.max(np.abs(step[:4])) < 1e-5 and abs(step[4]) < 1e-8:
+            break
+    z = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0] / sig
+    return p, np.abs(z) <= 3.5 * sc
+
+
+def _consistent(prof: _Profiles, min_contrast: float) -> np.ndarray:
+    """Segments whose edge looks like the rim's: its polarity, enough contrast, close to
+    the neighbours' contrast, a like width (a shadow's edge is softer), a good fit (a
+    cable or the holder's outline is not one step) and a well-determined position."""
+    ok = prof.ok & np.isfinite(prof.contrast) & np.isfinite(prof.sigma)
+    if ok.sum() < 12:
+        return ok
+    sign = 1.0 if np.median(prof.contrast[ok]) > 0 else -1.0
+    c = sign * prof.contrast
+    ok &= c >= min_contrast
+    if ok.sum() < 12:
+        return ok
+    cm = np.where(ok, c, np.nan)
+    nb = np.sort(np.stack([np.roll(cm, s) for s in (-3, -2, -1, 1, 2, 3)]), axis=0)
+    n_nb = np.isfinite(nb).sum(axis=0)
+    ref = np.where(n_nb > 0, nb[np.maximum(n_nb - 1, 0) // 2, np.arange(len(c))], np.nan)
+    ok &= ~np.isfinite(ref) | (np.abs(c - ref) <= 0.3 * np.abs(ref))
+    s_med = float(np.median(prof.width[ok]))
+    ok &= (prof.width <= 1.6 * s_med + 0.3) & (prof.width >= 0.5 * s_med - 0.2)
+    ok &= prof.rms <= 2.0 * float(np.median(prof.rms[ok])) + 1.0
+    ok &= prof.sigma <= 4.0 * float(np.median(prof.sigma[ok])) + 0.01
+    return ok
+
+
+def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4
+            ) -> tuple[Ellipse, _Profiles, np.ndarray]:
+    """Alternate edge profiles along the current ellipse and a geometric fit to their
+    points; segments whose edge is not the rim's (a holder, a cable, a shadow's soft
+    edge) are left out (:func:`_consistent`, then the fit's own outliers)."""
+    half_band = 5.0
+    for rnd in range(rounds):
+        prof = _edge_profiles(gray, p, half_band)
+        ok = _consistent(prof, min_contrast)
+        if ok.sum() < 12:
+            raise VisionError("rim image: too few rim edge segments of one polarity and "
+                              "contrast could be measured")
+        p_new, inl = _geometric_fit(p, prof.xy[ok], prof.sigma[ok])
+        use = np.zeros_like(ok)
+        use[np.flatnonzero(ok)[inl]] = True
+        moved = np.max(np.abs(_ellipse_frame(p_new, prof.xy[:, 0], prof.xy[:, 1])[0]
+                              - _ellipse_frame(p, prof.xy[:, 0], prof.xy[:, 1])[0]))
+        p = p_new
+        half_band = float(np.clip(3.0 * float(np.median(prof.width[use])) + 1.5, 3.5, 8.0))
+        if rnd >= 1 and moved < 2e-3:
+            break
+    return p, prof, use
+
+
 def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float | None = 800.0,
-            *, min_contrast: float = 15.0, half_width: int = 4, tails: int = 2,
-            max_rms_px: float = 0.25) -> RimFit:
+            *, min_contrast: float = 15.0, max_rms_px: float = 0.25,
+            min_coverage: float = 0.6) -> RimFit:
     """Fit the turntable rim's outer edge; eccentricity and (with R, h) camera zenith.
 
     The whole rim (or most of it) must be in view: at the reference rig's 160 um/px a
     150 mm rim is larger than the frame, so calibrate with a wider view or a smaller
-    concentric disc. Raises VisionError when no elliptical rim is visible.
+    concentric disc. Raises VisionError when no elliptical rim is visible, or when less
+    than ``min_coverage`` of its circumference could be measured.
     """
     gray = as_gray(image, "rim image")
     check_usable(gray, min_contrast, "rim image")
     k = _coarse_ellipse(gray, min_contrast)
-    pts = EdgePoints(np.empty((0, 2)), np.empty(0), False)
-    for _ in range(2):  # re-centre the windows on the previous fit
-        pts = _rim_points(gray, k, half_width, min_contrast, tails)
-        if pts.xy.shape[0] < 50:
-            raise VisionError(f"rim image: only {pts.xy.shape[0]} rim edge points measured")
-        xy = pts.xy
-        k = fit_ellipse(xy)
-        for _ in range(3):  # drop outliers (specks, the holder's shadow on the rim)
-            r = _sampson(k, xy)
-            sig = max(float(np.median(np.abs(r))) * 1.4826, 0.01)
-            keep = np.abs(r) < 4 * sig
-            if keep.all():
-                break
-            xy = xy[keep]
-            k = fit_ellipse(xy)
-    ctr, (a, b), ang = _conic_params(k)
-    rms = float(np.sqrt(np.mean(_sampson(k, xy) ** 2)))
-    cover = _coverage(k, xy)
-    if cover < 0.6 or rms > max_rms_px:
+    p, prof, use = _refine(gray, _params_from_conic(k), min_contrast)
+    xy = prof.xy[use]
+    r = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0]
+    rms = float(np.sqrt(np.mean(r ** 2))) if r.size else math.inf
+    cover = float(use.mean())
+    if cover < min_coverage or rms > max_rms_px:
         # a cable loop or a half-hidden rim fits some ellipse: flag it, do not guess
         raise VisionError(f"rim image: the rim's edge was traced over only {100 * cover:.0f} % "
-                          f"of its circumference (rms {rms:.2f} px); need 60 % within "
-                          f"{max_rms_px:g} px")
+                          f"of its circumference (rms {rms:.2f} px); need "
+                          f"{100 * min_coverage:.0f} % within {max_rms_px:g} px")
+    cx, cy, a, b, t = (float(v) for v in p)
+    if b > a:
+        a, b, t = b, a, t + math.pi / 2
+    ang = (math.degrees(t) + 90.0) % 180.0 - 90.0
     e = math.sqrt(max(0.0, 1.0 - (b / a) ** 2))
     zen = (camera_zenith_from_eccentricity(e, radius_mm, height_mm)
            if radius_mm and height_mm else math.nan)
-    return RimFit(center_px=ctr, axes_px=(a, b), angle_deg=ang, eccentricity=e,
-                  camera_zenith_deg=zen, rms_px=rms, n_points=int(xy.shape[0]), conic=k)
+    return RimFit(center_px=np.array([cx, cy]), axes_px=(a, b), angle_deg=ang, eccentricity=e,
+                  camera_zenith_deg=zen, rms_px=rms, n_points=int(use.sum()),
+                  conic=_conic_from_params(np.array([cx, cy, a, b, math.radians(ang)])))
 
 
 # ---- perspective correction --------------------------------------------------------------

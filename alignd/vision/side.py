@@ -8,8 +8,10 @@ change it; a positive tilt means the sample's top leans further toward +x than t
 Method: Canny + Hough finds the near-vertical edges coarsely; each is then measured in every
 row it crosses with the area method (:mod:`alignd.vision.edges`) and fitted as a line
 x = a + b y. Edges spanning most of the image height belong to the pole (a rod seen from
-the side: two edges of opposite polarity); the shorter ones to the sample. The thesis'
-Canny + Hough angle (0.01 deg accumulator bins) is kept as :func:`baseline_tilt`.
+the side: two edges of opposite polarity); the shorter ones to the sample. The chosen pole
+and sample edges are measured again as blurred steps over all their rows
+(:mod:`alignd.vision.edge_profile`), free of the area method's bias under defocus. The
+thesis' Canny + Hough angle (0.01 deg accumulator bins) is kept as :func:`baseline_tilt`.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import cv2
 import numpy as np
 
 from alignd.errors import VisionError
+from alignd.vision.edge_profile import Spread, fit_vertical_edge
 from alignd.vision.edges import (
     EdgePoints,
     Line,
@@ -80,11 +83,12 @@ def _angle_of(line: Line) -> tuple[float, float]:
 
 
 def _hough_vertical(gray: np.ndarray, theta_step_deg: float, max_angle_deg: float,
-                    threshold: int) -> list[tuple[float, float, float]]:
+                    threshold: int, canny: tuple[int, int] = (30, 90)
+                    ) -> list[tuple[float, float, float]]:
     """Near-vertical Hough lines as (angle_deg, x at mid-height, -votes)."""
     u8 = np.clip(gray, 0, 255).astype(np.uint8)
     blur = cv2.GaussianBlur(u8, (0, 0), 1.0)
-    edges = cv2.Canny(blur, 30, 90)
+    edges = cv2.Canny(blur, *canny)
     h = gray.shape[0]
     out = []
     step = math.radians(theta_step_deg)
@@ -103,12 +107,15 @@ def _hough_vertical(gray: np.ndarray, theta_step_deg: float, max_angle_deg: floa
 
 def find_vertical_edges(image: np.ndarray, *, min_contrast: float = 15.0,
                         max_angle_deg: float = 8.0, min_rows: int = 60,
-                        end_trim_rows: int = 6) -> list[SideEdge]:
-    """All near-vertical straight edges, sub-pixel, sorted by x."""
+                        end_trim_rows: int = 6, canny: tuple[int, int] = (30, 90)
+                        ) -> list[SideEdge]:
+    """All near-vertical straight edges, sub-pixel, sorted by x. ``canny``: the edge
+    detector's hysteresis thresholds for the coarse search (lower finds fainter edges: a
+    defocused step of 30 DN does not reach the default 90)."""
     gray = as_gray(image, "side image")
     check_usable(gray, min_contrast, "side image")
     h = gray.shape[0]
-    seeds = _hough_vertical(gray, 0.25, max_angle_deg, max(min_rows // 2, 20))
+    seeds = _hough_vertical(gray, 0.25, max_angle_deg, max(min_rows // 2, 20), canny)
     seeds.sort(key=lambda s: s[2])
     taken: list[float] = []
     edges: list[SideEdge] = []
@@ -212,6 +219,36 @@ def _roi_edges(image: np.ndarray, roi: tuple[int, int, int, int], what: str,
     return [_shifted(e, x0, y0) for e in edges]
 
 
+SPREADS: tuple[Spread, ...] = ("optics", "pixel grid")
+
+
+def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
+              roi: tuple[int, int, int, int] | None, end_trim_rows: int = 10) -> SideEdge:
+    """The edge re-measured as a blurred step over its rows (:mod:`edge_profile`); the
+    window stays clear of the other edges and inside the region. Unchanged if that fails."""
+    h, w = gray.shape
+    x0, y0, x1, y1 = roi if roi is not None else (0, 0, w, h)
+    x0, y0, x1, y1 = max(int(x0), 0), max(int(y0), 0), min(int(x1), w), min(int(y1), h)
+    gaps = [abs(o.x_mid_px - e.x_mid_px) for o in others if abs(o.x_mid_px - e.x_mid_px) > 3]
+    hw = int(np.clip(math.floor(min(gaps, default=99.0) - 6.0), 4, 7))
+    r0 = max(e.rows[0] + end_trim_rows, y0 + 4)
+    r1 = min(e.rows[1] - end_trim_rows, y1 - 5)
+    y_mid = (e.rows[0] + e.rows[1]) / 2
+    b = -float(e.line.n[1] / e.line.n[0])
+    fits = [fit_vertical_edge(gray, float(e.line.minor_at(y_mid)), b, y_mid,
+                              np.arange(r0, r1 + 1), half_width=hw, x_limits=(x0, x1),
+                              spread=spread) for spread in SPREADS]
+    # the spread model that describes the edge better: residuals in DN over the same pixels
+    fit = min((f for f in fits if f is not None), key=lambda f: f.rms_dn, default=None)
+    # it refines the edge found, never moves to another one
+    if fit is None or abs(fit.a - float(e.line.minor_at(y_mid))) > 1.5 or abs(
+            fit.angle_deg - e.angle_deg) > 0.1:
+        return e
+    ln = fit.line()
+    ln = replace(ln, rms_px=e.line.rms_px)
+    return replace(e, angle_deg=fit.angle_deg, sigma_deg=fit.sigma_deg, x_mid_px=fit.a, line=ln)
+
+
 def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
     """The rod: the narrowest pair of x-adjacent edges of opposite polarity."""
     best: tuple[float, list[SideEdge]] | None = None
@@ -222,6 +259,24 @@ def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
                 a.angle_deg - b.angle_deg) < 0.5 and (best is None or d < best[0]):
             best = (d, [a, b])
     return best[1] if best else []
+
+
+def _auto_pole(edges: list[SideEdge], h: int, min_fraction: float,
+               max_width_px: float) -> list[SideEdge]:
+    """The pole unaided: a narrow bar whose edges run through the whole height; failing
+    that, 90 % of it (uneven light, ends)."""
+    for frac in (min_fraction, 0.9):
+        pole = _pole_pair([e for e in edges if _spans(e, h, frac)], max_width_px)
+        if pole:
+            return pole
+    return []
+
+
+def _merge(a: list[SideEdge], b: list[SideEdge]) -> list[SideEdge]:
+    """Edges of two searches, one per position (the first search's where both found it)."""
+    out = list(a)
+    out += [e for e in b if all(abs(e.x_mid_px - o.x_mid_px) >= 6.0 for o in a)]
+    return sorted(out, key=lambda e: e.x_mid_px)
 
 
 def _partner(main: SideEdge, pool: list[SideEdge]) -> list[SideEdge]:
@@ -277,12 +332,14 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
             pool = sorted(edges, key=lambda e: abs(e.x_mid_px - pole_x_px))[:2]
             pool = [e for e in pool if abs(e.x_mid_px - pole_x_px) < 60]
         else:
-            # through the whole height; failing that, 90 % of it (uneven light, ends)
-            for frac in (pole_min_fraction, 0.9):
-                pool = [e for e in edges if _spans(e, h, frac)]
-                pole = _pole_pair(pool, max_pole_width_px or 0.1 * w)
-                if pole:
-                    break
+            pole = _auto_pole(edges, h, pole_min_fraction, max_pole_width_px or 0.1 * w)
+            if not pole:
+                # a faint, defocused or shaded pole edge may not reach the coarse search's
+                # threshold: look again with a lower one
+                edges = _merge(edges, find_vertical_edges(image, min_contrast=min_contrast,
+                                                          canny=(10, 30)))
+                pole = _auto_pole(edges, h, pole_min_fraction,
+                                  max_pole_width_px or 0.1 * w)
         if pole_x_px is not None:
             pole = _pole_pair(pool, max_pole_width_px or 0.1 * w)
         if not pole and pole_x_px is not None and pool:
@@ -320,6 +377,10 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
         else:
             main = min(long_ones, key=lambda e: abs(e.x_mid_px - pole_x))
     sample = _partner(main, rest)
+    gray = as_gray(image, "side image")
+    others = [*edges, *pole, *sample]
+    pole = [_profiled(gray, e, others, pole_roi_px) for e in pole]
+    sample = [_profiled(gray, e, others, sample_roi_px) for e in sample]
     sa, ss = _combine(sample)
     pa, ps = _combine(pole)
     return SideMeasurement(sa, pa, sa - pa, math.hypot(ss, ps), tuple(sample), tuple(pole), mode)

@@ -48,9 +48,14 @@ class LiveFrames:
 
     # ---- the worker's side -------------------------------------------------------------
     def put(self, role: str, image: np.ndarray, grab_s: float | None = None) -> None:
+        """The worker's frame, not copied: the web thread gets a read-only view of the
+        very array the procedure is measuring, so a view that drew on it would raise
+        instead of changing the procedure's frame."""
+        view = image.view()
+        view.flags.writeable = False
         with self._lock:
             self._seq += 1
-            self._frames[role] = LiveFrame(role, image, time.time(), self._seq)
+            self._frames[role] = LiveFrame(role, view, time.time(), self._seq)
             if grab_s is not None and len(self.grab_seconds) < 10000:
                 self.grab_seconds.append(grab_s)
 

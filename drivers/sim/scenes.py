@@ -17,7 +17,8 @@ LSB or MSB aligned) and optionally a JPEG round trip (UVC cameras stream MJPEG).
 - :func:`random_side_scene`: the side camera. A narrow full-height pole and the sample's
   silhouette, in either order and either contrast, the sample spanning the full height or
   standing on a holder and a platform; uneven light; the regions of interest a config
-  would give.
+  would give. Drawn at 4 sub-columns per pixel and defocused before the pixels integrate
+  (a lens blurs the light, not the pixels).
 - :func:`random_rim_scene`: the turntable rim (e 0.01-0.2), brighter or darker than the
   floor, partly hidden by the holder, cables and shadows.
 
@@ -566,6 +567,21 @@ def _holder_furniture(rng: np.random.Generator, img: np.ndarray, holder: np.ndar
 
 
 # ---- side camera ------------------------------------------------------------------------
+_SIDE_SS = 4  # sub-columns per pixel column while drawing a side scene
+
+
+def _stretch(img: np.ndarray, ss: int) -> np.ndarray:
+    """A smooth map (texture, light) at ss x the width, interpolated."""
+    h, w = img.shape
+    return cv2.resize(img, (w * ss, h), interpolation=cv2.INTER_LINEAR)
+
+
+def _wide(poly: np.ndarray, ss: int) -> Polygon:
+    """A polygon (pixel coordinates) on the ss x wider drawing grid: exact area fractions
+    of each sub-column (the map is linear)."""
+    return Polygon(poly * np.array([float(ss), 1.0]))
+
+
 def random_side_scene(rng: np.random.Generator, category: str | None = None,
                       size_px: tuple[int, int] = (1280, 720)) -> SideSceneSample:
     """One randomised side-camera frame (see the module docstring)."""
@@ -601,9 +617,14 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
 
     pole_lv = level_vs(bg, 60)
     samp_lv = level_vs(bg, 60)
+    # drawn at _SIDE_SS x the resolution across (the measured edges are near vertical), so
+    # that the defocus acts before the pixels integrate the light, as a lens does; blurring
+    # the pixel image instead makes an edge's profile depend on its sub-pixel phase
+    ss = _SIDE_SS
     img = np.full((h, w), bg, np.float32) + _texture(rng, (h, w), rng.uniform(50, 300),
                                                      rng.uniform(0, 5))
-    ras = Raster(size_px, 1.0, (0.0, 0.0), 0.0)
+    img = _stretch(img, ss)
+    ras = Raster((w * ss, h), 1.0, (0.0, 0.0), 0.0)
     ym = (h - 1) / 2
 
     def slanted(x_mid: float, ang: float, y_at: float, y0: float, y1: float,
@@ -629,7 +650,7 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     slab = slanted(s_left, samp_ang, y_mid, y_top, y_bot, ws)
     params: dict[str, object] = {"full_height": full, "pole_left": pole_left, "wp": wp,
                                  "ws": ws, "gap": gap, "tilt": tilt}
-    _paint(img, Polygon(pole), ras, pole_lv)
+    _paint(img, _wide(pole, ss), ras, pole_lv)
     if not full:
         # the holder and the platform below the sample, wider, their own small angles
         hh = float(rng.uniform(25, 70))
@@ -643,24 +664,28 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
             hx0, hx1 = s_left - ext_far, s_left + ws + ext_near
         ha = pole_ang + float(rng.uniform(-1, 1))
         holder = slanted(hx0, ha, y_bot, y_bot, y_bot + hh, hx1 - hx0)
-        _paint(img, Polygon(holder), ras, hold_lv)
+        _paint(img, _wide(holder, ss), ras, hold_lv)
         plat_lv = level_vs(hold_lv, 25)
         ext2 = float(rng.uniform(2, max(room * 0.6 - ext_near, 3)))
         px0 = hx0 - (ext2 if pole_left else rng.uniform(5, 100))
         px1 = hx1 + (rng.uniform(5, 100) if pole_left else ext2)
         pa = pole_ang + float(rng.uniform(-1, 1))
         plat = slanted(px0, pa, y_bot + hh, y_bot + hh, h + big, px1 - px0)
-        _paint(img, Polygon(plat), ras, plat_lv)
+        _paint(img, _wide(plat, ss), ras, plat_lv)
         params["holder_px"] = hh
-    _paint(img, Polygon(slab), ras, samp_lv)
+    _paint(img, _wide(slab, ss), ras, samp_lv)
     uneven = cat == "uneven light" or rng.random() < 0.3
     light, info = _light(rng, (h, w), gradient=0.5 if uneven else 0.15,
                          vignetting=float(rng.uniform(0.1, 0.4)) if uneven else 0.0,
                          shadow=uneven and rng.random() < 0.6)
     params.update(info)
-    img *= light
+    img *= _stretch(light, ss)
     blur = float(rng.uniform(0.4, 1.5))
-    out = _finish(img, rng, blur=blur, read_noise=float(rng.uniform(0.5, 2.0)),
+    img = cv2.GaussianBlur(img, (0, 0), sigmaX=blur * ss, sigmaY=blur,
+                           borderType=cv2.BORDER_REFLECT)
+    img = img.reshape(h, w, ss).mean(axis=2)
+    params["blur_px"] = blur
+    out = _finish(img, rng, blur=0.0, read_noise=float(rng.uniform(0.5, 2.0)),
                   electrons_per_dn=float(rng.uniform(40, 150)), enc=enc)
     ta = math.tan(math.radians(samp_ang))
     x_left_mid = float(slab[0, 0] - (y_mid - y_top) * ta)
