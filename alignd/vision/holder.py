@@ -53,6 +53,7 @@ log = logging.getLogger(__name__)
 
 _DOWN = 4
 _AGREE_PX, _AGREE_SIGMA = 0.05, 3.0  # profile vs area corners: allowed difference
+_RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 
 
@@ -444,6 +445,17 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
             det = _refine(gray, order_corners(hint_arr), polarity, expected_size_px, hint_arr,
                           min_contrast, max_rms_px, passes, lens, size_tolerance,
                           refine == "profile")
+            if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px)
+                                                - order_corners(hint_arr), axis=1)) > _RESEED_PX:
+                # the holder moved far within the +-10 px side search (a wide sweep's
+                # steps): the fine windows sat off-centre and could straddle a nearby
+                # edge (a sample strip along a side), skewing a side by up to 2 px at a
+                # corner; measure again around what was found
+                again = _refine(gray, order_corners(det.corners_px), polarity,
+                                expected_size_px, hint_arr, min_contrast, max_rms_px, passes,
+                                lens, size_tolerance, refine == "profile")
+                if again.ok:
+                    det = again
             if det.ok:
                 return det
             reasons.append(f"at the previous corners: {det.reason}")
