@@ -12,18 +12,23 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
+import numpy as np
+
 from alignd.config import AligndConfig
 from alignd.procedures.rig import Rig
+from alignd.procedures.tools import Corners, SideInfo, Tools, as_corners
+from drivers.camera import Frame
 from drivers.config import SimConfig
 from drivers.sim.clock import Clock
-from drivers.sim.direct import DirectParts, build_direct_axes
+from drivers.sim.direct import DirectParts, build_direct_axes, scene_tracker
 from drivers.sim.rig import SimRig
 from drivers.sim.world import World
 
 if TYPE_CHECKING:  # the renderer loads when a camera renders
+    from alignd.solve.result import CentreResult
     from drivers.sim.render import RenderOptions
 
-__all__ = ["DirectRig", "SimRig", "build_direct_rig", "open_sim_rig"]
+__all__ = ["DirectRig", "SimRig", "build_direct_rig", "open_sim_rig", "standin_tools"]
 
 
 def open_sim_rig(cfg: AligndConfig, *, seed: int | None = None,
@@ -65,3 +70,30 @@ def build_direct_rig(cfg: AligndConfig, seed: int | None = None, *,
     rig = DirectRig(axes=dict(parts.axes), cameras=parts.cameras, truth=parts.world.truth,
                     name=f"{cfg.name} (direct sim, seed {used_seed})", sim_parts=parts)
     return rig, parts.world
+
+
+def standin_tools(rng: np.random.Generator, sigma_px: float,
+                  name: str | None = None) -> Tools:
+    """Measuring tools for ``SceneCamera`` frames (the commissioning tests and benchmark):
+    the world's projected corners + N(0, ``sigma_px``) in the real tracker's image order
+    (top-left first, clockwise), the real solver, and the side view from the scene's
+    geometry."""
+    from alignd import solve as solver
+    from alignd.vision.holder import order_corners
+
+    tracker = scene_tracker(sigma_px, rng)
+
+    def track(frame: Frame) -> Corners:
+        det = as_corners(tracker(frame))
+        return Corners(order_corners(det.corners_px), det.ok)
+
+    def solve(angles: np.ndarray, points: np.ndarray, px: float | None) -> CentreResult:
+        return solver.solve_centre(solver.Sweep(np.asarray(angles), np.asarray(points), px))
+
+    def side(frame: Frame) -> SideInfo:
+        m = frame.metadata
+        return SideInfo(float(m["tilt_deg"]), float(m["tilt_deg"]), 0.0,
+                        float(m["sample_x_px"]), float(m["pole_x_px"]))
+
+    return Tools(track=track, solve=solve, tilt=lambda f: float(f.metadata["tilt_deg"]),
+                 side=side, names={"track": name} if name else None)

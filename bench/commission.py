@@ -37,15 +37,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from alignd import solve as solver  # noqa: E402
 from alignd.config import AligndConfig, load_config  # noqa: E402
 from alignd.procedures import Tools, default_tools, run_alignment  # noqa: E402
 from alignd.procedures.commission import CommissionRecord, run_commission  # noqa: E402
-from alignd.procedures.tools import Corners, SideInfo, as_corners  # noqa: E402
 from alignd.simulated import build_direct_rig  # noqa: E402
+from alignd.simulated import standin_tools as sim_standin_tools  # noqa: E402
 from alignd.vision.holder import order_corners  # noqa: E402
-from drivers.camera import Frame  # noqa: E402
-from drivers.sim.direct import scene_tracker  # noqa: E402
 from drivers.sim.render import posed_world  # noqa: E402
 
 FRAME_TIME_S = 1 / 15  # a real camera's frame after a settled move (15 fps), for the estimate
@@ -54,22 +51,8 @@ MAX_ROUNDS = 3
 
 def standin_tools(seed: int, sigma_px: float = 0.02) -> Tools:
     """World corners + noise in the real tracker's order (top-left first, clockwise)."""
-    tracker = scene_tracker(sigma_px, np.random.default_rng(20_000 + seed))
-
-    def track(frame: Frame) -> Corners:
-        det = as_corners(tracker(frame))
-        return Corners(order_corners(det.corners_px), det.ok)
-
-    def solve(angles: np.ndarray, points: np.ndarray, px: float | None) -> Any:
-        return solver.solve_centre(solver.Sweep(np.asarray(angles), np.asarray(points), px))
-
-    def side(frame: Frame) -> SideInfo:
-        m = frame.metadata
-        return SideInfo(float(m["tilt_deg"]), float(m["tilt_deg"]), 0.0,
-                        float(m["sample_x_px"]), float(m["pole_x_px"]))
-
-    return Tools(track=track, solve=solve, tilt=lambda f: float(f.metadata["tilt_deg"]),
-                 side=side, names={"track": f"stand-in (image order) + N(0, {sigma_px} px)"})
+    return sim_standin_tools(np.random.default_rng(20_000 + seed), sigma_px,
+                             f"stand-in (image order) + N(0, {sigma_px} px)")
 
 
 def with_world(cfg: AligndConfig, **world: object) -> AligndConfig:

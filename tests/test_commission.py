@@ -5,42 +5,23 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 import pytest
 from procedures_support import scene_rig, sim_config
 
-from alignd import solve as solver
 from alignd.config import AligndConfig
 from alignd.procedures.commission import CommissionRecord, run_commission
-from alignd.procedures.tools import Corners, SideInfo, Tools, as_corners
-from alignd.vision.holder import order_corners
-from drivers.camera import Frame
-from drivers.sim.direct import scene_tracker
+from alignd.procedures.tools import Tools
+from alignd.simulated import standin_tools
 from drivers.sim.world import World
 
 
 def image_order_tools(seed: int, sigma_px: float = 0.01) -> Tools:
     """The world's projected corners + noise, in the real tracker's image order (top-left,
     top-right, bottom-right, bottom-left), and a side view from the scene's geometry."""
-    tracker = scene_tracker(sigma_px, np.random.default_rng(seed + 1000))
-
-    def track(frame: Frame) -> Corners:
-        det = as_corners(tracker(frame))
-        return Corners(order_corners(det.corners_px), det.ok)
-
-    def solve_fn(angles: np.ndarray, points: np.ndarray, px: float | None) -> Any:
-        return solver.solve_centre(solver.Sweep(np.asarray(angles), np.asarray(points), px))
-
-    def side(frame: Frame) -> SideInfo:
-        m = frame.metadata
-        return SideInfo(float(m["tilt_deg"]), float(m["tilt_deg"]), 0.0,
-                        float(m["sample_x_px"]), float(m["pole_x_px"]))
-
-    return Tools(track=track, solve=solve_fn, tilt=lambda f: float(f.metadata["tilt_deg"]),
-                 side=side)
+    return standin_tools(np.random.default_rng(seed + 1000), sigma_px)
 
 
 def with_world(cfg: AligndConfig, **world: object) -> AligndConfig:
