@@ -15,6 +15,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from alignd.textfmt import wrap_words
+
 WIDTH = 1100
 PANEL_H = 420
 ROW_H = 19
@@ -125,23 +127,11 @@ def _plot_panel(run: dict[str, Any], w: int) -> np.ndarray:
     return panel
 
 
-def _wrap(text: str, width: int) -> list[str]:
-    lines: list[str] = []
-    cur = ""
-    for word in text.split():
-        if cur and len(cur) + 1 + len(word) > width:
-            lines.append(cur)
-            cur = word
-        else:
-            cur = f"{cur} {word}" if cur else word
-    return [*lines, cur] if cur else lines
-
-
 def _findings(run: dict[str, Any]) -> np.ndarray:
     findings = [f for f in (run.get("result") or {}).get("findings") or []
                 if isinstance(f, dict)]
     width_chars = (WIDTH - 255) // 6
-    rows = [(f, _wrap(str(f.get("message", "")), width_chars)[:3]) for f in findings]
+    rows = [(f, wrap_words(str(f.get("message", "")), width_chars)[:3]) for f in findings]
     img = np.full((sum(ROW_H * len(lines) for _f, lines in rows) + 16, WIDTH, 3), 255,
                   np.uint8)
     y = 8

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from alignd.store import atomic_write_bytes, jsonable
+from alignd.textfmt import wrap_words
 
 WIDTH = 960
 PLOT_H = 360  # the row holding the zoom (square) and the convergence plot
@@ -620,17 +621,6 @@ ZONE_COLOURS = {"accept": (120, 200, 120), "undecided": (80, 200, 240),
                 "reject": (120, 120, 230)}
 
 
-def _wrap_chars(text: str, width_chars: int) -> list[str]:
-    lines, cur = [], ""
-    for word in text.split(" "):
-        if cur and len(cur) + 1 + len(word) > width_chars:
-            lines.append(cur)
-            cur = word
-        else:
-            cur = f"{cur} {word}" if cur else word
-    return [*lines, cur] if cur else lines
-
-
 def draw_verdict(run: dict[str, Any], width: int = WIDTH, height: int = VERDICT_H
                  ) -> np.ndarray:
     """The decision rule and the uncertainty budget: the zones of the rule on a distance
@@ -685,7 +675,7 @@ def draw_verdict(run: dict[str, Any], width: int = WIDTH, height: int = VERDICT_
     cv2.putText(img, f"{what} {off:.1f} um, U {u:.1f} um (k=2)", (px(off) + 10, ym + 18),
                 FONT, 0.45, black, 1, cv2.LINE_AA)
     y = ym + 40
-    for line in _wrap_chars(str(dec.get("text", "")), 110)[:2]:
+    for line in wrap_words(str(dec.get("text", "")), 110)[:2]:
         cv2.putText(img, line, (10, y), FONT, 0.42, black, 1, cv2.LINE_AA)
         y += 17
     cv2.putText(img, "offset: the target's distance from the mean axis of rotation (the axis "

@@ -1,6 +1,7 @@
 """Small text helpers for what operators read (terminal, logs, events).
 
 ``micro()``: "µm" where the output can encode it (a UTF-8 terminal or pipe), else "um".
+``wrap_words``: greedy word wrap for text drawn into report images.
 ``identity_text``: a device's identity without empty "s/n" or "fw" fields (the SMC100, for
 one, reports no serial number).
 """
@@ -41,3 +42,17 @@ def identity_text(ident: Mapping[str, object]) -> str:
     if ident.get("stage") and ident.get("stage") != ident.get("model"):
         out += f" ({ident['stage']})"
     return out
+
+
+def wrap_words(text: str, width: int) -> list[str]:
+    """``text`` in lines of at most ``width`` characters, broken between words (a word
+    longer than ``width`` has a line of its own)."""
+    lines: list[str] = []
+    cur = ""
+    for word in text.split():
+        if cur and len(cur) + 1 + len(word) > width:
+            lines.append(cur)
+            cur = word
+        else:
+            cur = f"{cur} {word}" if cur else word
+    return [*lines, cur] if cur else lines
