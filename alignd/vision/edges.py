@@ -24,8 +24,9 @@ import numpy as np
 
 from alignd.errors import VisionError
 
-__all__ = ["EdgePoints", "Line", "area_crossings", "as_gray", "check_usable", "coarse_edge",
-           "edge_points", "fit_line", "intersect", "sensor_full_scale"]
+__all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings", "as_gray",
+           "check_usable", "coarse_edge", "edge_points", "fit_line", "intersect",
+           "segment_median", "sensor_full_scale"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -135,15 +136,61 @@ def _median(v: np.ndarray) -> float:
     return float(np.partition(v, k)[k])
 
 
-def _adaptive_slope(v: np.ndarray, k: int) -> np.ndarray:
-    """Per-column slope: the edge's robust mean, replaced by the local (moving) mean only
-    where that differs from it by more than 4 of its own standard errors."""
+def adaptive_slope(v: np.ndarray, k: int) -> np.ndarray:
+    """Per-column slope: the edge's robust mean, replaced by the local (moving) mean over
+    +-k columns only where that differs from it by more than 4 of its own standard errors
+    (one value per edge, whose noise would otherwise tilt the line, except where a
+    shadow's penumbra crosses the edge)."""
     g = _robust_mean(v)
     if v.size < 3 or k <= 0:
         return np.full(v.shape, g)
     loc = _moving_mean(v, k)
     sig = float(_median(np.abs(v - _median(v)))) * 1.4826 / math.sqrt(2 * k + 1)
     return np.where(np.abs(loc - g) > 4 * sig + 1e-9, loc, g)
+
+
+def segment_median(v: np.ndarray, seg: np.ndarray, n_seg: int) -> np.ndarray:
+    """The median (the upper one for even counts, as :func:`_median`) of each segment of
+    ``v``; ``seg`` (non-decreasing, 0 .. n_seg - 1) names each value's segment. NaN for an
+    empty segment."""
+    counts = np.bincount(seg, minlength=n_seg)
+    if v.size == 0:
+        return np.full(n_seg, np.nan)
+    starts = np.cumsum(counts) - counts
+    span = float(np.max(v) - np.min(v)) + 1.0
+    vs = v[np.argsort(v + seg * span, kind="stable")]  # by segment, then by value
+    out = vs[np.minimum(starts + counts // 2, v.size - 1)].astype(float)
+    out[counts == 0] = np.nan
+    return out
+
+
+def adaptive_slopes(v: np.ndarray, seg: np.ndarray, n_seg: int, k: int) -> np.ndarray:
+    """:func:`adaptive_slope` of several edges in one batch (a few array operations in all,
+    not per edge); ``seg`` (non-decreasing, 0 .. n_seg - 1) names each column's edge."""
+    v = np.asarray(v, float)
+    if v.size == 0:
+        return v.copy()
+    counts = np.bincount(seg, minlength=n_seg)
+    starts = np.cumsum(counts) - counts
+    med = segment_median(v, seg, n_seg)
+    dev = np.abs(v - med[seg])
+    mad = np.nan_to_num(segment_median(dev, seg, n_seg)) * 1.4826
+    keep = dev <= 4.0 * (mad + 1e-9)[seg]
+    nk = np.bincount(seg, weights=keep, minlength=n_seg)
+    sk = np.bincount(seg, weights=np.where(keep, v, 0.0), minlength=n_seg)
+    g = np.where(nk > 0, sk / np.maximum(nk, 1.0), med)[seg]
+    if k <= 0:
+        return g
+    # the moving mean over +-k columns, truncated at each edge's ends (k <= (n - 1) / 2)
+    n = counts[seg]
+    ke = np.minimum(k, (n - 1) // 2)
+    st = starts[seg]
+    pos = np.arange(v.size) - st
+    lo, hi = np.maximum(pos - ke, 0), np.minimum(pos + ke, n - 1)
+    csum = np.concatenate(([0.0], np.cumsum(v)))
+    loc = (csum[st + hi + 1] - csum[st + lo]) / (hi - lo + 1)
+    sig = (mad / math.sqrt(2 * k + 1))[seg]
+    return np.where((n >= 3) & (np.abs(loc - g) > 4.0 * sig + 1e-9), loc, g)
 
 
 def _robust_mean(v: np.ndarray) -> float:
@@ -220,8 +267,8 @@ def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: boo
         # otherwise tilt the line), except where a shadow's penumbra crosses the edge
         wts = np.arange(tails) - js
         wts = wts / float(wts @ wts)
-        slope_s = _adaptive_slope(P[:, :tails] @ wts, smooth)[:, None]
-        slope_e = _adaptive_slope(P[:, -tails:] @ wts, smooth)[:, None]
+        slope_s = adaptive_slope(P[:, :tails] @ wts, smooth)[:, None]
+        slope_e = adaptive_slope(P[:, -tails:] @ wts, smooth)[:, None]
     else:
         slope_s = slope_e = np.zeros((P.shape[0], 1))
     Sj = S_s[:, None] + slope_s * (j[None, :] - js)
