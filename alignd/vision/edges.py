@@ -343,60 +343,64 @@ def coarse_edge(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, search_px: 
 def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
              iterations: int = 4, min_sigma: float = 0.01) -> Line | None:
     """Least-squares line minor = a + b * major with iterative robust rejection."""
-    if pts.xy.shape[0] < min_points:
+    n_pts = pts.xy.shape[0]
+    if n_pts < min_points:
         return None
-    if pts.vertical:
-        major, minor = pts.xy[:, 1], pts.xy[:, 0]
-    else:
-        major, minor = pts.xy[:, 0], pts.xy[:, 1]
+    k = 1 if pts.vertical else 0
+    major, minor = pts.xy[:, k], pts.xy[:, 1 - k]
     m0 = float(major.mean())
-    use = np.ones(major.size, bool)
-    coef = np.zeros(2)
-    res = np.zeros_like(minor)
     u = major - m0
+    uu, vv = u, minor
+    use: np.ndarray | None = None  # None: every point
+    a0 = b = 0.0
+    res = minor
     for _ in range(iterations):
-        nu = int(use.sum())
+        nu = uu.size
         if nu < min_points:
             return None
-        uu, vv = u[use], minor[use]
-        um, vm = uu.mean(), vv.mean()
+        um, vm = float(uu.mean()), float(vv.mean())
         du = uu - um
         b = float(du @ (vv - vm)) / max(float(du @ du), 1e-12)
-        coef = np.array([vm - b * um, b])
-        res = minor - (coef[0] + coef[1] * u)
-        ru = res[use]
-        mad = float(_median(np.abs(ru - _median(ru)))) * 1.4826
-        sig = max(mad, min_sigma)
-        new = np.abs(res) < reject_sigma * sig
-        if np.array_equal(new, use):
+        a0 = vm - b * um
+        res = minor - (a0 + b * u)
+        ru = res if use is None else res[use]
+        mad = _median(np.abs(ru - _median(ru))) * 1.4826
+        new = np.abs(res) < reject_sigma * max(mad, min_sigma)
+        if use is None and bool(new.all()) or use is not None and np.array_equal(new, use):
             break
         use = new
-    if use.sum() < min_points:
+        uu, vv = u[use], minor[use]
+    n_used = n_pts if use is None else int(np.count_nonzero(use))
+    if n_used < min_points:
         return None
-    r = res[use]
-    dof = max(int(use.sum()) - 2, 1)
-    s2 = float(r @ r) / dof
-    A = np.column_stack([np.ones(use.sum()), major[use] - m0])
-    cov_c = s2 * np.linalg.inv(A.T @ A)
+    r = res if use is None else res[use]
+    uf = u if use is None else u[use]
+    s2 = float(r @ r) / max(n_used - 2, 1)
+    # covariance of (a, b) of the centred fit, by the 2 x 2 normal matrix's inverse
+    s_u, s_uu = float(uf.sum()), float(uf @ uf)
+    det = n_used * s_uu - s_u * s_u
+    if abs(det) < 1e-12:
+        return None
+    cov_c = (s2 / det) * np.array([[s_uu, -s_u], [-s_u, float(n_used)]])
     # back to a + b * major (un-centred)
     T = np.array([[1.0, -m0], [0.0, 1.0]])
     cov_ab = T @ cov_c @ T.T
-    a = coef[0] - coef[1] * m0
-    b = coef[1]
+    a = a0 - b * m0
     # minor - b * major - a = 0
     # vertical: x - b y = a; else: y - b x = a
-    nv = np.array([1.0, -b]) if pts.vertical else np.array([-b, 1.0])
-    norm = float(np.hypot(*nv))
-    return Line(n=nv / norm, d=float(a / norm), rms_px=float(math.sqrt(s2)),
-                n_points=int(major.size), n_used=int(use.sum()), cov_ab=cov_ab,
-                vertical=pts.vertical, major_span=(float(major.min()), float(major.max())),
+    norm = math.hypot(1.0, b)
+    nv = np.array([1.0, -b]) / norm if pts.vertical else np.array([-b, 1.0]) / norm
+    return Line(n=nv, d=a / norm, rms_px=math.sqrt(s2), n_points=n_pts, n_used=n_used,
+                cov_ab=cov_ab, vertical=pts.vertical,
+                major_span=(float(major.min()), float(major.max())),
                 contrast=float(_median(pts.contrast)))
 
 
 def intersect(l1: Line, l2: Line) -> np.ndarray:
     """Intersection point of two lines (NaN when parallel)."""
-    A = np.array([l1.n, l2.n])
-    det = float(np.linalg.det(A))
+    a, b = float(l1.n[0]), float(l1.n[1])
+    c, d = float(l2.n[0]), float(l2.n[1])
+    det = a * d - b * c
     if abs(det) < 1e-9:
         return np.array([np.nan, np.nan])
-    return np.linalg.solve(A, np.array([l1.d, l2.d]))
+    return np.array([(d * l1.d - b * l2.d) / det, (a * l2.d - c * l1.d) / det])

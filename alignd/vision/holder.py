@@ -98,9 +98,13 @@ def order_corners(corners: np.ndarray, hint: np.ndarray | None = None) -> np.nda
     if hint is not None:
         h = np.asarray(hint, float)
         if h.shape == (4, 2) and np.all(np.isfinite(h)):
-            costs = [np.sum(np.linalg.norm(np.roll(c, -k, axis=0) - h, axis=1)) for k in range(4)]
-            c = np.roll(c, -int(np.argmin(costs)), axis=0)
+            rolled = c[_ROLLS]  # (4 shifts, 4, 2): every cyclic order at once
+            costs = np.sqrt(((rolled - h[None]) ** 2).sum(axis=2)).sum(axis=1)
+            c = rolled[int(np.argmin(costs))]
     return c
+
+
+_ROLLS = (np.arange(4)[None, :] + np.arange(4)[:, None]) % 4  # row k: np.roll(c, -k)
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> float:
@@ -570,18 +574,17 @@ def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
     """"dark" when the quadrilateral's middle is darker than just outside its sides."""
     h, w = gray.shape
     ctr = c.mean(axis=0)
-
-    def level(p: np.ndarray) -> float:
-        x = int(np.clip(round(p[0]), 2, w - 3))
-        y = int(np.clip(round(p[1]), 2, h - 3))
-        return float(np.median(gray[y - 2:y + 3, x - 2:x + 3]))
-
-    outside = []
-    for i in range(4):
-        mid = (c[i] + c[(i + 1) % 4]) / 2
-        v = mid - ctr
-        outside.append(level(mid + 12.0 * v / (np.linalg.norm(v) or 1.0)))
-    return "dark" if level(ctr) < float(np.median(outside)) else "light"
+    mids = (c + np.roll(c, -1, axis=0)) / 2
+    v = mids - ctr
+    v /= np.maximum(np.linalg.norm(v, axis=1), 1e-9)[:, None]
+    at = np.vstack([ctr[None], mids + 12.0 * v])  # the middle, then just outside each side
+    x = np.clip(np.rint(at[:, 0]), 2, w - 3).astype(np.intp)
+    y = np.clip(np.rint(at[:, 1]), 2, h - 3).astype(np.intp)
+    d = np.arange(-2, 3)
+    patches = gray[(y[:, None, None] + d[None, :, None]), (x[:, None, None] + d[None, None, :])]
+    level = np.partition(patches.reshape(5, 25).astype(np.float32), 12, axis=1)[:, 12]
+    out = np.sort(level[1:])
+    return "dark" if level[0] < 0.5 * float(out[1] + out[2]) else "light"
 
 
 def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, pol: str,

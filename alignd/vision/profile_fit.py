@@ -106,8 +106,11 @@ def _tail_slopes(P: np.ndarray, edge: np.ndarray, n_edges: int
     it changes along the edge by more than its noise (a penumbra crossing the edge)."""
     wts = np.arange(_TAILS) - (_TAILS - 1) / 2
     wts = wts / float(wts @ wts)
-    return (adaptive_slopes(P[:, :_TAILS] @ wts, edge, n_edges, 3),
-            adaptive_slopes(P[:, -_TAILS:] @ wts, edge, n_edges, 3))
+    n = edge.size
+    # both sides in one batch: the far sides as edges n_edges .. 2 n_edges - 1
+    both = adaptive_slopes(np.concatenate([P[:, :_TAILS] @ wts, P[:, -_TAILS:] @ wts]),
+                           np.concatenate([edge, edge + n_edges]), 2 * n_edges, 3)
+    return both[:n], both[n:]
 
 
 def _start(P: np.ndarray, x: np.ndarray, b1: np.ndarray, b2: np.ndarray
