@@ -118,13 +118,15 @@ class EdgePoints:
 
 
 def _moving_mean(v: np.ndarray, k: int) -> np.ndarray:
-    k = min(k, (v.size - 1) // 2)  # np.convolve's "same" is max(len) long
-    if v.size == 0 or k <= 0:
+    """Mean over +-k along the last axis, truncated at the ends (k at most (n - 1) / 2)."""
+    n = v.shape[-1]
+    k = min(k, (n - 1) // 2)
+    if n == 0 or k <= 0:
         return v
-    ker = np.ones(2 * k + 1)
-    num = np.convolve(v, ker, mode="same")
-    den = np.convolve(np.ones_like(v), ker, mode="same")
-    return num / den
+    csum = np.concatenate([np.zeros((*v.shape[:-1], 1)), np.cumsum(v, axis=-1)], axis=-1)
+    i = np.arange(n)
+    lo, hi = np.maximum(i - k, 0), np.minimum(i + k, n - 1)
+    return (csum[..., hi + 1] - csum[..., lo]) / (hi - lo + 1)
 
 
 def _median(v: np.ndarray) -> float:
@@ -258,8 +260,7 @@ def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: boo
         np.float64)
     S = P[:, :tails].mean(axis=1)
     E = P[:, -tails:].mean(axis=1)
-    S_s = _moving_mean(S, smooth)
-    E_s = _moving_mean(E, smooth)
+    S_s, E_s = _moving_mean(np.vstack([S, E]), smooth)
     js = (tails - 1) / 2
     je = m - 1 - (tails - 1) / 2
     if tails >= 2:
@@ -267,8 +268,10 @@ def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: boo
         # otherwise tilt the line), except where a shadow's penumbra crosses the edge
         wts = np.arange(tails) - js
         wts = wts / float(wts @ wts)
-        slope_s = adaptive_slope(P[:, :tails] @ wts, smooth)[:, None]
-        slope_e = adaptive_slope(P[:, -tails:] @ wts, smooth)[:, None]
+        n = P.shape[0]
+        both = adaptive_slopes(np.concatenate([P[:, :tails] @ wts, P[:, -tails:] @ wts]),
+                               np.repeat([0, 1], n), 2, smooth)
+        slope_s, slope_e = both[:n, None], both[n:, None]
     else:
         slope_s = slope_e = np.zeros((P.shape[0], 1))
     Sj = S_s[:, None] + slope_s * (j[None, :] - js)
@@ -366,7 +369,8 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
         ru = res if use is None else res[use]
         mad = _median(np.abs(ru - _median(ru))) * 1.4826
         new = np.abs(res) < reject_sigma * max(mad, min_sigma)
-        if use is None and bool(new.all()) or use is not None and np.array_equal(new, use):
+        same = bool(new.all()) if use is None else np.array_equal(new, use)
+        if same:
             break
         use = new
         uu, vv = u[use], minor[use]
