@@ -24,9 +24,9 @@ import numpy as np
 
 from alignd.errors import VisionError
 
-__all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings", "as_gray",
-           "check_usable", "coarse_edge", "edge_points", "fit_line", "intersect",
-           "segment_median", "sensor_full_scale"]
+__all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
+           "area_crossings_many", "as_gray", "check_usable", "coarse_edge", "edge_points",
+           "edge_points_many", "fit_line", "intersect", "segment_median", "sensor_full_scale"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -205,21 +205,16 @@ def _robust_mean(v: np.ndarray) -> float:
     return float(v[keep].mean()) if keep.any() else med
 
 
-def edge_points(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, half_width: int = 5,
-                margin_px: float = 8.0, tails: int = 3, smooth: int = 3,
-                min_contrast: float = 10.0, vertical: bool | None = None) -> EdgePoints:
-    """Measure the edge near the segment p0-p1 in every column (or row) it crosses.
-
-    Windows of 2 * half_width + 1 px are centred on the predicted crossing; the segment's
-    ends are trimmed by ``margin_px`` (corners, neighbouring edges). Crossings with a level
-    difference under ``min_contrast`` or outside the window's middle are dropped.
-    """
+def _edge_columns(shape: tuple[int, int], p0: np.ndarray, p1: np.ndarray, margin_px: float,
+                  vertical: bool | None) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The columns (rows) ``t`` a segment crosses, ends trimmed by ``margin_px``, and its
+    predicted minor coordinate ``c`` in each."""
     p0 = np.asarray(p0, float)
     p1 = np.asarray(p1, float)
     dx, dy = p1 - p0
     if vertical is None:
-        vertical = abs(dy) > abs(dx)
-    h, w = gray.shape
+        vertical = bool(abs(dy) > abs(dx))
+    h, w = shape
     if vertical:  # rows: major = y, minor = x
         ma0, ma1, mi0, mi1, limit_major = p0[1], p1[1], p0[0], p1[0], h
     else:
@@ -230,12 +225,33 @@ def edge_points(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, half_width:
     trim = margin_px * abs(ma1 - ma0) / max(length, 1e-9)
     t = np.arange(math.ceil(ma0 + trim), math.floor(ma1 - trim) + 1)
     t = t[(t >= 0) & (t < limit_major)]
-    empty = EdgePoints(np.empty((0, 2)), np.empty(0), vertical)
     if t.size < 3 or ma1 - ma0 < 1e-9:
-        return empty
-    c = mi0 + (t - ma0) * (mi1 - mi0) / (ma1 - ma0)
-    return area_crossings(gray, t, c, vertical, half_width=half_width, tails=tails,
-                          smooth=smooth, min_contrast=min_contrast)
+        return np.empty(0, int), np.empty(0), vertical
+    return t, mi0 + (t - ma0) * (mi1 - mi0) / (ma1 - ma0), vertical
+
+
+def edge_points(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, half_width: int = 5,
+                margin_px: float = 8.0, tails: int = 3, smooth: int = 3,
+                min_contrast: float = 10.0, vertical: bool | None = None) -> EdgePoints:
+    """Measure the edge near the segment p0-p1 in every column (or row) it crosses.
+
+    Windows of 2 * half_width + 1 px are centred on the predicted crossing; the segment's
+    ends are trimmed by ``margin_px`` (corners, neighbouring edges). Crossings with a level
+    difference under ``min_contrast`` or outside the window's middle are dropped.
+    """
+    return area_crossings_many(gray, [_edge_columns(gray.shape, p0, p1, margin_px, vertical)],
+                               half_width=half_width, tails=tails, smooth=smooth,
+                               min_contrast=min_contrast)[0]
+
+
+def edge_points_many(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndarray]], *,
+                     half_width: int = 5, margin_px: float = 8.0, tails: int = 3,
+                     smooth: int = 3, min_contrast: float = 10.0) -> list[EdgePoints]:
+    """:func:`edge_points` of several segments (p0, p1) in one batch: the same crossings,
+    at the cost of one edge's array calls instead of one per edge."""
+    return area_crossings_many(
+        gray, [_edge_columns(gray.shape, p0, p1, margin_px, None) for p0, p1 in segments],
+        half_width=half_width, tails=tails, smooth=smooth, min_contrast=min_contrast)
 
 
 def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: bool, *,
@@ -243,49 +259,83 @@ def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: boo
                    min_contrast: float = 10.0) -> EdgePoints:
     """Area-method crossings of an edge (straight or gently curved) predicted at minor
     coordinate ``c`` in each column (row) ``t``; t must run along the edge."""
+    return area_crossings_many(gray, [(t, c, vertical)], half_width=half_width, tails=tails,
+                               smooth=smooth, min_contrast=min_contrast)[0]
+
+
+def _segment_moving_mean(v: np.ndarray, seg: np.ndarray, counts: np.ndarray,
+                         starts: np.ndarray, k: int) -> np.ndarray:
+    """Mean over +-k within each segment, truncated at its ends (k <= (n - 1) / 2)."""
+    if v.size == 0 or k <= 0:
+        return v
+    n = counts[seg]
+    ke = np.minimum(k, (n - 1) // 2)
+    st = starts[seg]
+    pos = np.arange(v.size) - st
+    lo, hi = np.maximum(pos - ke, 0), np.minimum(pos + ke, n - 1)
+    csum = np.concatenate(([0.0], np.cumsum(v)))
+    return (csum[st + hi + 1] - csum[st + lo]) / (hi - lo + 1)
+
+
+def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarray, bool]],
+                        *, half_width: int = 5, tails: int = 3, smooth: int = 3,
+                        min_contrast: float = 10.0) -> list[EdgePoints]:
+    """:func:`area_crossings` of several edges (t, c, vertical) in one batch: every step is
+    one array operation over all the columns of all the edges."""
     h, w = gray.shape
-    limit_minor = w if vertical else h
-    empty = EdgePoints(np.empty((0, 2)), np.empty(0), vertical)
-    t = np.asarray(t).astype(int)
-    c = np.asarray(c, float)
-    start = np.round(c).astype(int) - half_width
     m = 2 * half_width + 1
-    ok = (start >= 0) & (start + m <= limit_minor)
-    t, c, start = t[ok], c[ok], start[ok]
-    if t.size < 3:
-        return empty
+    out = [EdgePoints(np.empty((0, 2)), np.empty(0), v) for _t, _c, v in edges]
+    parts = []
+    for k, (t, c, vertical) in enumerate(edges):
+        t = np.asarray(t).astype(np.intp)
+        c = np.asarray(c, float)
+        start = np.round(c).astype(np.intp) - half_width
+        ok = (start >= 0) & (start + m <= (w if vertical else h))
+        if np.count_nonzero(ok) < 3:
+            continue
+        t, start = t[ok], start[ok]
+        parts.append((np.full(t.size, k), t, start, t * w if vertical else t,
+                      np.full(t.size, 1 if vertical else w, np.intp)))
+    if not parts:
+        return out
+    seg, t, start, base, stride = (np.concatenate(p) for p in zip(*parts, strict=True))
+    ne = len(edges)
+    counts = np.bincount(seg, minlength=ne)
+    starts = np.cumsum(counts) - counts
     j = np.arange(m)
-    idx_minor = start[:, None] + j[None, :]
-    P = (gray[t[:, None], idx_minor] if vertical else gray[idx_minor, t[:, None]]).astype(
+    flat = np.ascontiguousarray(gray).ravel()
+    P = flat.take(base[:, None] + (start[:, None] + j[None, :]) * stride[:, None]).astype(
         np.float64)
     S = P[:, :tails].mean(axis=1)
     E = P[:, -tails:].mean(axis=1)
-    S_s, E_s = _moving_mean(np.vstack([S, E]), smooth)
+    S_s = _segment_moving_mean(S, seg, counts, starts, smooth)
+    E_s = _segment_moving_mean(E, seg, counts, starts, smooth)
     js = (tails - 1) / 2
     je = m - 1 - (tails - 1) / 2
+    n = seg.size
     if tails >= 2:
         # the illumination slope across each side: one value per edge (its noise would
         # otherwise tilt the line), except where a shadow's penumbra crosses the edge
         wts = np.arange(tails) - js
         wts = wts / float(wts @ wts)
-        n = P.shape[0]
         both = adaptive_slopes(np.concatenate([P[:, :tails] @ wts, P[:, -tails:] @ wts]),
-                               np.repeat([0, 1], n), 2, smooth)
+                               np.concatenate([seg, seg + ne]), 2 * ne, smooth)
         slope_s, slope_e = both[:n, None], both[n:, None]
     else:
-        slope_s = slope_e = np.zeros((P.shape[0], 1))
+        slope_s = slope_e = np.zeros((n, 1))
     Sj = S_s[:, None] + slope_s * (j[None, :] - js)
     Ej = E_s[:, None] + slope_e * (j[None, :] - je)
     contrast = E_s - S_s
     good = np.abs(contrast) >= min_contrast
-    # a column that clips a corner or a neighbouring edge shows a partial step
+    # a column that clips a corner or a neighbouring edge shows a partial step, judged
+    # against the contrast of the neighbouring columns (+-15), so that a shadow or
+    # vignetting that changes the contrast along the edge is followed
     raw = E - S
-    if good.any():
-        # against the contrast of the neighbouring columns (+-15), so that a shadow or
-        # vignetting that changes the contrast along the edge is followed
-        med = float(_median(raw[good]))
-        ref = _moving_mean(np.where(good, raw, med), 15)
-        good &= np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
+    # (an edge without a good column has none to lose: 0 for its median, not NaN, which
+    # the running sums would carry into the next edges)
+    med = np.nan_to_num(segment_median(raw[good], seg[good], ne))
+    ref = _segment_moving_mean(np.where(good, raw, med[seg]), seg, counts, starts, 15)
+    good &= np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
     denom = Sj - Ej
     denom = np.where(good[:, None] & (np.abs(denom) > 1e-6), denom, 1.0)
     frac = (P - Ej) / denom
@@ -296,9 +346,13 @@ def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: boo
     lo = np.minimum(Sj, Ej) - 0.35 * np.abs(contrast)[:, None]
     hi = np.maximum(Sj, Ej) + 0.35 * np.abs(contrast)[:, None]
     good &= np.all((lo < P) & (hi > P), axis=1)
-    t, pos, contrast = t[good], pos[good], contrast[good]
-    xy = np.column_stack([pos, t]) if vertical else np.column_stack([t, pos])
-    return EdgePoints(xy.astype(float), contrast, vertical)
+    for k in np.unique(seg[good]):
+        sel = good & (seg == k)
+        tk, pk = t[sel].astype(float), pos[sel]
+        vertical = edges[k][2]
+        xy = np.column_stack([pk, tk]) if vertical else np.column_stack([tk, pk])
+        out[k] = EdgePoints(xy, contrast[sel], vertical)
+    return out
 
 
 def coarse_edge(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, search_px: int = 10,

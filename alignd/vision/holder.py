@@ -41,6 +41,7 @@ from alignd.vision.edges import (
     check_usable,
     coarse_edge,
     edge_points,
+    edge_points_many,
     fit_line,
     intersect,
 )
@@ -392,13 +393,9 @@ def _fit_sides(gray: np.ndarray, corners: np.ndarray, half_width: int, margin: f
                ) -> list[tuple[Line | None, EdgePoints]]:
     """Each side's area-method crossings (frame pixels) and the line through them (in the
     ideal image when there is a lens)."""
-    res = []
-    for i in range(4):
-        p0, p1 = corners[i], corners[(i + 1) % 4]
-        pts = edge_points(gray, p0, p1, half_width=half_width, margin_px=margin,
-                          min_contrast=min_contrast)
-        res.append((fit_line(_ideal(pts, lens)), pts))
-    return res
+    found = edge_points_many(gray, [(corners[i], corners[(i + 1) % 4]) for i in range(4)],
+                             half_width=half_width, margin_px=margin, min_contrast=min_contrast)
+    return [(fit_line(_ideal(pts, lens)), pts) for pts in found]
 
 
 def _ideal(pts: EdgePoints, lens: Lens | None) -> EdgePoints:
