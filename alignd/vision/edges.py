@@ -25,7 +25,8 @@ import numpy as np
 from alignd.errors import VisionError
 
 __all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
-           "area_crossings_many", "as_gray", "check_usable", "coarse_edge", "edge_points",
+           "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
+           "coarse_edges_many", "edge_points",
            "edge_points_many", "fit_line", "intersect", "segment_median", "sensor_full_scale"]
 
 
@@ -359,42 +360,54 @@ def coarse_edge(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, search_px: 
                 margin_px: float = 12.0, min_step: float = 10.0) -> Line | None:
     """Locate an edge within +-search_px of the segment p0-p1 to about a pixel: the
     strongest step of each column (row), then a robust line. Seeds :func:`edge_points`."""
-    p0 = np.asarray(p0, float)
-    p1 = np.asarray(p1, float)
-    dx, dy = p1 - p0
-    vertical = abs(dy) > abs(dx)
+    return coarse_edges_many(gray, [(p0, p1)], search_px=search_px, margin_px=margin_px,
+                             min_step=min_step)[0]
+
+
+def coarse_edges_many(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndarray]], *,
+                      search_px: int = 10, margin_px: float = 12.0, min_step: float = 10.0
+                      ) -> list[Line | None]:
+    """:func:`coarse_edge` of several segments (p0, p1) in one batch (one gather and one
+    step search for all their columns; a line fit per edge)."""
     h, w = gray.shape
-    if vertical:
-        ma0, ma1, mi0, mi1, lim_ma, lim_mi = p0[1], p1[1], p0[0], p1[0], h, w
-    else:
-        ma0, ma1, mi0, mi1, lim_ma, lim_mi = p0[0], p1[0], p0[1], p1[1], w, h
-    if ma1 < ma0:
-        ma0, ma1, mi0, mi1 = ma1, ma0, mi1, mi0
-    if ma1 - ma0 < 1e-9:
-        return None
-    trim = margin_px * abs(ma1 - ma0) / max(math.hypot(dx, dy), 1e-9)
-    t = np.arange(math.ceil(ma0 + trim), math.floor(ma1 - trim) + 1)
-    t = t[(t >= 0) & (t < lim_ma)]
-    c = mi0 + (t - ma0) * (mi1 - mi0) / (ma1 - ma0)
-    start = np.round(c).astype(int) - search_px
     m = 2 * search_px + 1
-    ok = (start >= 0) & (start + m <= lim_mi)
-    t, start = t[ok], start[ok]
-    if t.size < 8:
-        return None
-    idx = start[:, None] + np.arange(m)[None, :]
-    P = (gray[t[:, None], idx] if vertical else gray[idx, t[:, None]]).astype(np.float32)
+    parts = []
+    vert = []
+    for k, (p0, p1) in enumerate(segments):
+        t, c, vertical = _edge_columns(gray.shape, p0, p1, margin_px, None)
+        vert.append(vertical)
+        start = np.round(c).astype(np.intp) - search_px
+        ok = (start >= 0) & (start + m <= (w if vertical else h))
+        if np.count_nonzero(ok) < 8:
+            continue
+        t, start = t[ok].astype(np.intp), start[ok]
+        parts.append((np.full(t.size, k), t, start, t * w if vertical else t,
+                      np.full(t.size, 1 if vertical else w, np.intp)))
+    out: list[Line | None] = [None] * len(segments)
+    if not parts:
+        return out
+    seg, t, start, base, stride = (np.concatenate(p) for p in zip(*parts, strict=True))
+    flat = np.ascontiguousarray(gray).ravel()
+    P = flat.take(base[:, None] + (start[:, None] + np.arange(m)[None, :]) * stride[:, None]
+                  ).astype(np.float32)
     P = (P[:, :-2] + P[:, 1:-1] + P[:, 2:]) / 3  # a little smoothing against noise
     D = np.diff(P, axis=1)
-    # one sign for the whole edge: the dominant one
-    sign = 1.0 if _median(D.max(axis=1)) >= _median(-D.min(axis=1)) else -1.0
-    k = np.argmax(sign * D, axis=1)
-    step = sign * D[np.arange(D.shape[0]), k]
-    keep = step * 3 >= min_step
-    pos = start + k + 1.5
-    xy = np.column_stack([pos, t]) if vertical else np.column_stack([t, pos])
-    pts = EdgePoints(xy[keep].astype(float), step[keep], vertical)
-    return fit_line(pts, reject_sigma=3.0, min_points=8, min_sigma=0.7)
+    # one sign per edge: the dominant one
+    ne = len(segments)
+    up = segment_median(D.max(axis=1), seg, ne) >= segment_median(-D.min(axis=1), seg, ne)
+    sign = np.where(up, 1.0, -1.0).astype(np.float32)[seg]
+    SD = sign[:, None] * D
+    k = np.argmax(SD, axis=1)
+    step = SD[np.arange(SD.shape[0]), k]
+    pos = (start + k + 1.5).astype(float)
+    tf = t.astype(float)
+    for e in np.unique(seg):
+        sel = (seg == e) & (step * 3 >= min_step)
+        xy = np.column_stack([pos[sel], tf[sel]]) if vert[e] else np.column_stack(
+            [tf[sel], pos[sel]])
+        out[e] = fit_line(EdgePoints(xy, step[sel], vert[e]), reject_sigma=3.0, min_points=8,
+                          min_sigma=0.7)
+    return out
 
 
 def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,

@@ -39,7 +39,7 @@ from alignd.vision.edges import (
     Line,
     as_gray,
     check_usable,
-    coarse_edge,
+    coarse_edges_many,
     edge_points,
     edge_points_many,
     fit_line,
@@ -512,8 +512,8 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
     # pass 0: strongest step near each side of the approximate box (+-10 px), good to a few
     # tenths of a pixel; then the area method (exact wherever the edge sits in its window,
     # so one pass suffices; more passes re-centre the windows on the previous lines)
-    coarse = [coarse_edge(gray, corners[i], corners[(i + 1) % 4], search_px=10,
-                          min_step=min_contrast / 2) for i in range(4)]
+    coarse = coarse_edges_many(gray, [(corners[i], corners[(i + 1) % 4]) for i in range(4)],
+                               search_px=10, min_step=min_contrast / 2)
     if any(c is None for c in coarse):
         raise VisionError("top image: the holder's sides could not be located "
                           f"(side(s) {[i for i, c in enumerate(coarse) if c is None]})")
