@@ -445,7 +445,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         try:
             det = _refine(gray, order_corners(hint_arr), polarity, expected_size_px, hint_arr,
                           min_contrast, max_rms_px, passes, lens, size_tolerance,
-                          refine == "profile")
+                          refine == "profile", seeded=True)
             if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px)
                                                 - order_corners(hint_arr), axis=1)) > _RESEED_PX:
                 # the holder moved far within the +-10 px side search (a wide sweep's
@@ -507,8 +507,47 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
 def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
             expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
             min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None = None,
-            size_tolerance: float = 0.15, profile: bool = True) -> HolderDetection:
-    """Fine fit from approximate corners (a coarse box or the previous frame's corners)."""
+            size_tolerance: float = 0.15, profile: bool = True, seeded: bool = False
+            ) -> HolderDetection:
+    """Fine fit from approximate corners (a coarse box or, ``seeded``, the previous frame's
+    corners)."""
+    # (a distorted side is curved in the frame: windows along the straight segment between
+    # its corners would miss its middle, so with a lens the coarse search always runs)
+    straight = lens is None or lens.k1 == 0.0
+    sides = _fit_sides(gray, corners, _HALF_WIDTH, 10.0, min_contrast, lens) \
+        if seeded and straight and passes <= 1 else None
+    if sides is None or not _seed_holds(sides, corners, max_rms_px, lens):
+        corners, sides = _locate(gray, corners, min_contrast, passes, lens)
+    return _finish(gray, corners, sides, polarity, expected_size_px, hint, min_contrast,
+                   max_rms_px, lens, size_tolerance, profile)
+
+
+def _seed_holds(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
+                max_rms_px: float, lens: Lens | None) -> bool:
+    """Tracking: whether the fine windows centred on the previous frame's sides caught
+    every side whole (nearly every column used, a good fit) and the sides moved by less
+    than a pixel: then the +-10 px coarse search that re-centres the windows would give
+    the same windows and is not needed."""
+    lines = [ln for ln, _pts in sides if ln is not None]
+    if len(lines) != 4:
+        return False
+    for i, ln in enumerate(lines):
+        span = float(np.linalg.norm(corners[(i + 1) % 4] - corners[i]))
+        crossed = max(span - 20.0, 1.0) * max(abs(ln.n[0]), abs(ln.n[1]))  # columns (rows)
+        if ln.rms_px > max_rms_px or ln.n_used < 0.8 * crossed:
+            return False
+    new = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
+    if not np.all(np.isfinite(new)):
+        return False
+    if lens is not None:
+        new = lens.distort(new)
+    return float(np.max(np.linalg.norm(new - corners, axis=1))) <= 1.0
+
+
+def _locate(gray: np.ndarray, corners: np.ndarray, min_contrast: float, passes: int,
+            lens: Lens | None) -> tuple[np.ndarray, list[tuple[Line | None, EdgePoints]]]:
+    """The sides' area-method crossings and lines, from approximate corners: the corners
+    the fine windows were centred on, and the sides."""
     # pass 0: strongest step near each side of the approximate box (+-10 px), good to a few
     # tenths of a pixel; then the area method (exact wherever the edge sits in its window,
     # so one pass suffices; more passes re-centre the windows on the previous lines)
@@ -538,6 +577,15 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
         sides = _fit_sides(gray, corners, _HALF_WIDTH, 10.0, min_contrast, lens)
         lines = [s[0] for s in sides]
         lines_ideal = True
+    return corners, sides
+
+
+def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
+            polarity: str | None, expected_size_px: tuple[float, float] | None,
+            hint: np.ndarray | None, min_contrast: float, max_rms_px: float,
+            lens: Lens | None, size_tolerance: float, profile: bool) -> HolderDetection:
+    """The detection from the sides' area-method fits: checked, widened for soft edges,
+    refined by the profile fit where that agrees."""
     pol = _polarity(gray, corners)
     det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
                     size_tolerance)
