@@ -428,7 +428,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     length, principal point, k1) straightens distorted sides (corners stay in frame
     pixels; the angle and the size are those of the undistorted image). ``refine``:
     "profile" refines the accepted sides by the profile fit of
-    :mod:`alignd.vision.profile_fit` (about half the corner noise, about 10 ms more a
+    :mod:`alignd.vision.profile_fit` (about half the corner noise, about 5 ms more a
     frame), "area" keeps the area method's crossings (the faster, noisier). Raises
     VisionError when the image is unusable or holds no candidate; returns ``ok`` False,
     with the reason, when no candidate passes the checks.
@@ -440,8 +440,9 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     hint_arr = None if hint is None else np.asarray(hint, float)
     reasons: list[str] = []
     if hint_arr is not None and hint_arr.shape == (4, 2) and np.all(np.isfinite(hint_arr)):
-        # tracking: the previous corners seed the +-10 px side search directly; if the
-        # holder is not there any more, fall back to a full search
+        # tracking: the previous corners seed the fine windows (or, when the sides moved,
+        # the +-10 px side search); if the holder is not there any more, fall back to a
+        # full search
         try:
             det = _refine(gray, order_corners(hint_arr), polarity, expected_size_px, hint_arr,
                           min_contrast, max_rms_px, passes, lens, size_tolerance,
