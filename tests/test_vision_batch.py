@@ -73,11 +73,11 @@ def test_the_four_sides_in_one_batch_equal_each_side_alone(
             np.testing.assert_allclose(got.xy, one.xy, rtol=0, atol=1e-9)
             np.testing.assert_allclose(got.contrast, one.contrast, rtol=0, atol=1e-9)
     lines = coarse_edges_many(img, sides, search_px=10, min_step=7.5)
-    for (p0, p1), got in zip(sides, lines, strict=True):
-        one = coarse_edge(img, p0, p1, search_px=10, min_step=7.5)
-        assert got is not None and one is not None
-        assert got.n_used == one.n_used
-        assert abs(got.d - one.d) < 1e-9 and np.allclose(got.n, one.n, atol=1e-12)
+    for (p0, p1), line in zip(sides, lines, strict=True):
+        alone = coarse_edge(img, p0, p1, search_px=10, min_step=7.5)
+        assert line is not None and alone is not None
+        assert line.n_used == alone.n_used
+        assert abs(line.d - alone.d) < 1e-9 and np.allclose(line.n, alone.n, atol=1e-12)
 
 
 def test_an_edge_without_usable_columns_does_not_spoil_the_next(

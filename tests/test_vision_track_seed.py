@@ -23,10 +23,12 @@ def _count_coarse(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     calls = [0]
     real = holder.coarse_edges_many
 
-    def counted(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndarray]],
-                **kwargs: float) -> list[Line | None]:
+    def counted(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndarray]], *,
+                search_px: int = 10, margin_px: float = 12.0, min_step: float = 10.0
+                ) -> list[Line | None]:
         calls[0] += 1
-        return real(gray, segments, **kwargs)
+        return real(gray, segments, search_px=search_px, margin_px=margin_px,
+                    min_step=min_step)
 
     monkeypatch.setattr(holder, "coarse_edges_many", counted)
     return calls
