@@ -45,7 +45,7 @@ def test_adaptive_slopes_equal_adaptive_slope_edge_by_edge(k: int) -> None:
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
 
 
-def test_segment_median_is_the_upper_median_per_segment() -> None:
+def test_segment_median_is_the_median_per_segment() -> None:
     rng = np.random.default_rng(12)
     for _ in range(100):
         parts = _segments(rng)
@@ -53,6 +53,8 @@ def test_segment_median_is_the_upper_median_per_segment() -> None:
         got = segment_median(np.concatenate(parts), seg, len(parts) + 1)
         np.testing.assert_array_equal(got[:-1], [np.sort(p)[p.size // 2] for p in parts])
         assert np.isnan(got[-1])  # a segment without values
+        mean_mid = segment_median(np.concatenate(parts), seg, len(parts), upper=False)
+        np.testing.assert_allclose(mean_mid, [np.median(p) for p in parts], rtol=0, atol=1e-12)
 
 
 @pytest.fixture(scope="module")

@@ -152,17 +152,23 @@ def adaptive_slope(v: np.ndarray, k: int) -> np.ndarray:
     return np.where(np.abs(loc - g) > 4 * sig + 1e-9, loc, g)
 
 
-def segment_median(v: np.ndarray, seg: np.ndarray, n_seg: int) -> np.ndarray:
-    """The median (the upper one for even counts, as :func:`_median`) of each segment of
-    ``v``; ``seg`` (non-decreasing, 0 .. n_seg - 1) names each value's segment. NaN for an
-    empty segment."""
+def segment_median(v: np.ndarray, seg: np.ndarray, n_seg: int, *, upper: bool = True
+                   ) -> np.ndarray:
+    """The median of each segment of ``v``: for an even count the upper of the middle two
+    (as :func:`_median`) or, ``upper`` False, their mean (as np.median); ``seg``
+    (non-decreasing, 0 .. n_seg - 1) names each value's segment. NaN for an empty
+    segment."""
     counts = np.bincount(seg, minlength=n_seg)
     if v.size == 0:
         return np.full(n_seg, np.nan)
     starts = np.cumsum(counts) - counts
     span = float(np.max(v) - np.min(v)) + 1.0
     vs = v[np.argsort(v + seg * span, kind="stable")]  # by segment, then by value
-    out = vs[np.minimum(starts + counts // 2, v.size - 1)].astype(float)
+    hi = np.minimum(starts + counts // 2, v.size - 1)
+    out = vs[hi].astype(float)
+    if not upper:
+        lo = np.maximum(starts + (counts - 1) // 2, 0)
+        out = 0.5 * (out + vs[np.minimum(lo, v.size - 1)])
     out[counts == 0] = np.nan
     return out
 

@@ -261,7 +261,7 @@ def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int 
     ks = r1.edge[sub]
     _, _, s_each = _fit(P[sub], x, (r1.c - centre)[sub], np.ones(ks.size), nu[ks], wa[ks],
                         wb[ks], b1[sub], b2[sub], 4)
-    blur = np.nan_to_num(segment_median(s_each, ks, ne), nan=1.0)
+    blur = np.nan_to_num(segment_median(s_each, ks, ne, upper=False), nan=1.0)
     reach = (3.0 * blur + 0.5 * (wa + wb)) / nu  # transition, minor px
     hw = int(min(max(half_width, math.ceil(float(reach.max())) + _TAILS), max_half_width))
     if hw > half_width:
@@ -284,7 +284,7 @@ def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int 
                                   iterations)
     good = np.isfinite(u) & (np.abs(u) < hw - _TAILS) & (np.abs(D) > 1e-6)
     # a column the model does not fit (a hole, a screw or a shadow's edge in its window)
-    typical = segment_median(misfit, r1.edge, ne)
+    typical = segment_median(misfit, r1.edge, ne, upper=False)
     good &= misfit <= _MISFIT * typical[r1.edge] + 0.5
     p = centre + u
     out = list(empty)
