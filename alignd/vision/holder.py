@@ -44,7 +44,7 @@ from alignd.vision.edges import (
     fit_line,
     intersect,
 )
-from alignd.vision.holder_search import _candidates, _vote_candidates
+from alignd.vision.holder_search import search_candidates
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import fit_crossings
 
@@ -158,7 +158,8 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     """Find the holder's top face in a top-camera frame.
 
     ``expected_size_px`` (long, short side in px; from the config's holder size and pixel
-    size) makes the search look for that size (centre voting, see :func:`_vote_candidates`)
+    size) makes the search look for that size (centre voting, see
+    :func:`alignd.vision.holder_search.search_candidates`)
     and rejects any result more than ``size_tolerance`` off; ``hint`` (previous corners)
     seeds tracking, keeps the corner order and falls back to a full search when the holder
     is not there; ``polarity`` ("dark"/"light") restricts the search; ``lens`` (focal
@@ -202,14 +203,10 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     # (a frame the previous corners fit is usable; only a full search needs the check)
     gray = as_gray(image, "top image")
     check_usable(gray, min_contrast, "top image")
-    cands: list[tuple[float, np.ndarray, str]] = []
-    if expected_size_px is not None:
-        cands += _vote_candidates(gray, expected_size_px, min_contrast,
-                                  size_tolerance=size_tolerance)
-    cands += _candidates(gray, expected_size_px, polarity)
     tried: list[np.ndarray] = []
     last: HolderDetection | None = None
-    for _score, box, _pol in cands:
+    for box in search_candidates(gray, expected_size_px, polarity, min_contrast,
+                                 size_tolerance):
         ctr = box.mean(axis=0)
         if any(np.linalg.norm(ctr - t) < 8.0 for t in tried):
             continue

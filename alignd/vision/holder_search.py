@@ -10,12 +10,30 @@ pixel at 1/4 scale; :mod:`alignd.vision.holder` refines them.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 _DOWN = 4
+
+
+def search_candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
+                      polarity: str | None, min_contrast: float, size_tolerance: float
+                      ) -> Iterator[np.ndarray]:
+    """Approximate boxes (4 corners, full-res px), the likeliest first.
+
+    Lazy: the caller refines them in turn and stops at the first that passes, so the
+    threshold ladder (a third of a search's time) is only built when every voted box
+    failed, or without an expected size.
+    """
+    if expected_size_px is not None:
+        for _score, box, _pol in _vote_candidates(gray, expected_size_px, min_contrast,
+                                                  size_tolerance=size_tolerance):
+            yield box
+    for _score, box, _pol in _candidates(gray, expected_size_px, polarity):
+        yield box
 
 def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
                 polarity: str | None) -> list[tuple[float, np.ndarray, str]]:
