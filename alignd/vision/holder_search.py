@@ -223,75 +223,89 @@ def _pair_scales(em: _EdgeMap, sides: tuple[float, float], tolerance: float) -> 
 
 def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int
                   ) -> list[tuple[float, np.ndarray, str]]:
-    """Centre voting (see :func:`_vote_candidates`) for a holder of eL x eS (1/4-scale px)."""
-    xs, ys, nx, ny, m, gx, gy = em.xs, em.ys, em.nx, em.ny, em.mag, em.gx, em.gy
+    """Centre voting (see :func:`_vote_candidates`) for a holder of eL x eS (1/4-scale px).
+
+    Every peak is handled at once (one distance matrix, one histogram, one remap of all
+    outlines): a loop over the peaks cost more in numpy calls than in arithmetic.
+    """
+    xs, ys, nx, ny, m = em.xs, em.ys, em.nx, em.ny, em.mag
     sh, sw = em.near_edge.shape
-    acc = np.zeros(sh * sw, np.float64)
-    for d in (eS / 2, eL / 2, -eS / 2, -eL / 2):
-        # only where the opposite side is there too: an edge a whole side away, its
-        # gradient the other way (a circle, a single edge or another size does not pair)
-        ok = _partners(em, np.array([2 * d]))[:, 0]
-        cx = np.rint(xs[ok] + d * nx[ok]).astype(np.int64)
-        cy = np.rint(ys[ok] + d * ny[ok]).astype(np.int64)
-        acc += np.bincount(cy * sw + cx, minlength=sh * sw)
+    # only where the opposite side is there too: an edge a whole side away, its gradient
+    # the other way (a circle, a single edge or another size does not pair)
+    half = np.array([eS / 2, eL / 2, -eS / 2, -eL / 2])
+    ok = _partners(em, 2 * half)  # (N, 4)
+    ei, di = np.nonzero(ok)
+    cx = np.rint(xs[ei] + half[di] * nx[ei]).astype(np.int64)
+    cy = np.rint(ys[ei] + half[di] * ny[ei]).astype(np.int64)
+    acc = np.bincount(cy * sw + cx, minlength=sh * sw)
     A = cv2.GaussianBlur(acc.reshape(sh, sw).astype(np.float32), (0, 0), 1.2)
     peaks_mask = (cv2.dilate(A, np.ones((5, 5), np.uint8)) <= A) & (0.25 * A.max() < A)
     py, px = np.nonzero(peaks_mask)
     order = np.argsort(-A[py, px])[:max_peaks]
-    theta_px = np.degrees(np.arctan2(ny, nx)) % 90.0
+    ctrs = np.column_stack([px[order], py[order]]).astype(float)  # (P, 2)
     r_max = math.hypot(eL, eS) / 2 + 3
-    out = []
-    for k in order:
-        c = np.array([px[k], py[k]], float)
-        near = (xs - c[0]) ** 2 + (ys - c[1]) ** 2 <= r_max ** 2
-        if near.sum() < 10:
-            continue
-        hist = np.bincount((theta_px[near]).astype(int) % 90, weights=m[near], minlength=90)
-        hist = np.convolve(np.concatenate([hist[-2:], hist, hist[:2]]), np.ones(5), "valid")
-        t0 = float(np.argmax(hist)) + 0.5
-        # refine: magnitude-weighted circular mean of the orientations within +-3 deg
-        dt = (theta_px[near] - t0 + 45.0) % 90.0 - 45.0
-        sel = np.abs(dt) < 3.0
-        if sel.any():
-            t0 += float(np.average(dt[sel], weights=m[near][sel]))
-        # the box of the expected size there, its long side either way, nudged by up to
-        # 3 px (1/4 scale) to where its outline has the strongest gradient: a peak made by
-        # something else (a disc's rim votes a small ring) has no such outline
-        best = None
-        for ang in (t0, t0 + 90.0):  # direction of the long side
-            box = cv2.boxPoints(((c[0], c[1]), (eL, eS), ang)).astype(float)
-            sup = _outline_support(gx, gy, box, _SHIFTS)
-            j = int(np.argmax(sup))
-            if best is None or sup[j] > best[0]:
-                best = (float(sup[j]), box + _SHIFTS[j])
-        assert best is not None
-        full = (best[1] + 0.5) * _DOWN - 0.5
-        out.append((best[0], full, "?"))
+    near = ((xs[None] - ctrs[:, :1]) ** 2 + (ys[None] - ctrs[:, 1:]) ** 2) <= r_max ** 2
+    keep = near.sum(axis=1) >= 10
+    ctrs, near = ctrs[keep], near[keep]
+    n_p = len(ctrs)
+    if n_p == 0:
+        return []
+    # the side directions: the dominant gradient orientation (mod 90 deg) around each peak
+    theta_px = np.degrees(np.arctan2(ny, nx)) % 90.0
+    pi, ni = np.nonzero(near)
+    th, wt = theta_px[ni], m[ni]
+    hist = np.bincount(pi * 90 + th.astype(int) % 90, weights=wt,
+                       minlength=n_p * 90).reshape(n_p, 90)
+    wrapped = np.concatenate([hist[:, -2:], hist, hist[:, :2]], axis=1)
+    smooth = sum(wrapped[:, k:k + 90] for k in range(5))
+    t0 = np.argmax(smooth, axis=1) + 0.5
+    # refine: magnitude-weighted circular mean of the orientations within +-3 deg
+    dt = (th - t0[pi] + 45.0) % 90.0 - 45.0
+    sel = np.abs(dt) < 3.0
+    w_sum = np.bincount(pi[sel], weights=wt[sel], minlength=n_p)
+    dt_sum = np.bincount(pi[sel], weights=wt[sel] * dt[sel], minlength=n_p)
+    t0 = t0 + np.divide(dt_sum, w_sum, out=np.zeros(n_p), where=w_sum > 0)
+    # the box of the expected size there, its long side either way, nudged by up to 3 px
+    # (1/4 scale) to where its outline has the strongest gradient: a peak made by
+    # something else (a disc's rim votes a small ring) has no such outline
+    boxes = np.array([cv2.boxPoints(((float(c[0]), float(c[1])), (eL, eS), float(a)))
+                      for c, t in zip(ctrs, t0, strict=True) for a in (t, t + 90.0)],
+                     float).reshape(n_p, 2, 4, 2)
+    sup = _outline_support(em.gx, em.gy, boxes.reshape(-1, 4, 2), _SHIFTS
+                           ).reshape(n_p, 2, len(_SHIFTS))
+    j = np.argmax(sup, axis=2)  # (P, 2) best shift for either long-side direction
+    s = np.take_along_axis(sup, j[..., None], axis=2)[..., 0]
+    a = (s[:, 1] > s[:, 0]).astype(int)  # the first direction unless the second is better
+    rows = np.arange(n_p)
+    best = boxes[rows, a] + _SHIFTS[j[rows, a]][:, None, :]
+    full = (best + 0.5) * _DOWN - 0.5
+    out = [(float(s[k, a[k]]), full[k], "?") for k in range(n_p)]
     out.sort(key=lambda t: -t[0])
     return out
 
 
-def _outline_support(gx: np.ndarray, gy: np.ndarray, box: np.ndarray,
+def _outline_support(gx: np.ndarray, gy: np.ndarray, boxes: np.ndarray,
                      shifts: np.ndarray | None = None) -> np.ndarray:
-    """For each shift (K, 2) of a box: mean |gradient . normal| along the middle 80 % of
-    its sides, times the square root of (weakest side / strongest side)."""
+    """(B, K): for each box (B, 4, 2) and shift (K, 2): mean |gradient . normal| along the
+    middle 80 % of its sides, times the square root of (weakest side / strongest side)."""
     if shifts is None:
         shifts = np.zeros((1, 2))
-    ctr = box.mean(axis=0)
-    t = np.linspace(0.1, 0.9, 24)[:, None]
-    pts, nrm = [], []
-    for i in range(4):
-        p0, p1 = box[i], box[(i + 1) % 4]
-        d = p1 - p0
-        n = np.array([-d[1], d[0]]) / (np.linalg.norm(d) or 1.0)
-        if np.dot((p0 + p1) / 2 - ctr, n) < 0:
-            n = -n
-        pts.append(p0 + t * d)
-        nrm.append(np.repeat(n[None], len(t), axis=0))
-    P = np.concatenate(pts)  # (96, 2)
-    N = np.concatenate(nrm)
-    Q = (shifts[:, None, :] + P[None]).astype(np.float32)  # (K, 96, 2)
+    boxes = np.asarray(boxes, float).reshape(-1, 4, 2)
+    ctr = boxes.mean(axis=1, keepdims=True)  # (B, 1, 2)
+    p0 = boxes
+    d = np.roll(boxes, -1, axis=1) - p0  # side i: corner i to i + 1
+    ln = np.linalg.norm(d, axis=2, keepdims=True)
+    n = np.stack([-d[..., 1], d[..., 0]], axis=2) / np.where(ln > 0, ln, 1.0)
+    flip = np.sum((p0 + d / 2 - ctr) * n, axis=2, keepdims=True) < 0
+    n = np.where(flip, -n, n)  # outward
+    t = np.linspace(0.1, 0.9, 24)
+    P = p0[:, :, None, :] + t[None, None, :, None] * d[:, :, None, :]  # (B, 4, 24, 2)
+    nb, k = len(boxes), len(shifts)
+    Q = (shifts[None, :, None, None, :] + P[:, None]).astype(np.float32)  # (B, K, 4, 24, 2)
+    Q = Q.reshape(nb * k, 96, 2)
     ax = cv2.remap(gx, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     ay = cv2.remap(gy, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    v = np.abs(ax * N[None, :, 0] + ay * N[None, :, 1]).reshape(len(shifts), 4, -1).mean(axis=2)
-    return v.mean(axis=1) * np.sqrt(v.min(axis=1) / (v.max(axis=1) + 1e-9))
+    N = n[:, None, :, None, :]  # (B, 1, 4, 1, 2)
+    v = np.abs(ax.reshape(nb, k, 4, 24) * N[..., 0] + ay.reshape(nb, k, 4, 24) * N[..., 1]
+               ).mean(axis=3)  # (B, K, 4)
+    return v.mean(axis=2) * np.sqrt(v.min(axis=2) / (v.max(axis=2) + 1e-9))
