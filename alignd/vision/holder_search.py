@@ -301,11 +301,13 @@ def _outline_support(gx: np.ndarray, gy: np.ndarray, boxes: np.ndarray,
     t = np.linspace(0.1, 0.9, 24)
     P = p0[:, :, None, :] + t[None, None, :, None] * d[:, :, None, :]  # (B, 4, 24, 2)
     nb, k = len(boxes), len(shifts)
-    Q = (shifts[None, :, None, None, :] + P[:, None]).astype(np.float32)  # (B, K, 4, 24, 2)
+    # float32 throughout: the arrays are (B x K x 96) and the sums need no more
+    Q = shifts.astype(np.float32)[None, :, None, :] + P.reshape(nb, 1, 96, 2).astype(np.float32)
     Q = Q.reshape(nb * k, 96, 2)
     ax = cv2.remap(gx, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     ay = cv2.remap(gy, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    N = n[:, None, :, None, :]  # (B, 1, 4, 1, 2)
-    v = np.abs(ax.reshape(nb, k, 4, 24) * N[..., 0] + ay.reshape(nb, k, 4, 24) * N[..., 1]
-               ).mean(axis=3)  # (B, K, 4)
+    N = np.repeat(n, 24, axis=1).astype(np.float32)[:, None]  # (B, 1, 96, 2)
+    proj = ax.reshape(nb, k, 96) * N[..., 0]
+    proj += ay.reshape(nb, k, 96) * N[..., 1]
+    v = np.abs(proj).reshape(nb, k, 4, 24).mean(axis=3, dtype=np.float64)  # (B, K, 4)
     return v.mean(axis=2) * np.sqrt(v.min(axis=2) / (v.max(axis=2) + 1e-9))
