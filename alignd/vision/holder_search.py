@@ -301,13 +301,17 @@ def _outline_support(gx: np.ndarray, gy: np.ndarray, boxes: np.ndarray,
     t = np.linspace(0.1, 0.9, 24)
     P = p0[:, :, None, :] + t[None, None, :, None] * d[:, :, None, :]  # (B, 4, 24, 2)
     nb, k = len(boxes), len(shifts)
-    # float32 throughout: the arrays are (B x K x 96) and the sums need no more
-    Q = shifts.astype(np.float32)[None, :, None, :] + P.reshape(nb, 1, 96, 2).astype(np.float32)
-    Q = Q.reshape(nb * k, 96, 2)
-    ax = cv2.remap(gx, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    ay = cv2.remap(gy, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    N = np.repeat(n, 24, axis=1).astype(np.float32)[:, None]  # (B, 1, 96, 2)
-    proj = ax.reshape(nb, k, 96) * N[..., 0]
-    proj += ay.reshape(nb, k, 96) * N[..., 1]
+    # float32, x and y apart: the arrays are (B x K x 96), and numpy's loops over a
+    # trailing axis of 2 would cost more than the remap itself
+    s = shifts.astype(np.float32)
+    P32 = P.reshape(nb, 1, 96, 2).astype(np.float32)
+    qx = (s[None, :, 0, None] + P32[..., 0]).reshape(nb * k, 96)
+    qy = (s[None, :, 1, None] + P32[..., 1]).reshape(nb * k, 96)
+    ax = cv2.remap(gx, qx, qy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    ay = cv2.remap(gy, qx, qy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    nxs = np.repeat(n[..., 0], 24, axis=1).astype(np.float32)[:, None]  # (B, 1, 96)
+    nys = np.repeat(n[..., 1], 24, axis=1).astype(np.float32)[:, None]
+    proj = ax.reshape(nb, k, 96) * nxs
+    proj += ay.reshape(nb, k, 96) * nys
     v = np.abs(proj).reshape(nb, k, 4, 24).mean(axis=3, dtype=np.float64)  # (B, K, 4)
     return v.mean(axis=2) * np.sqrt(v.min(axis=2) / (v.max(axis=2) + 1e-9))
