@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 _DOWN = 4
+_MIN_SUPPORT_RATIO = 0.1  # a voted box this much weaker than the best is not refined
 
 
 def search_candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
@@ -29,8 +30,11 @@ def search_candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | 
     failed, or without an expected size.
     """
     if expected_size_px is not None:
-        for _score, box, _pol in _vote_candidates(gray, expected_size_px, min_contrast,
-                                                  size_tolerance=size_tolerance):
+        voted = _vote_candidates(gray, expected_size_px, min_contrast,
+                                 size_tolerance=size_tolerance)
+        for score, box, _pol in voted:
+            if score < _MIN_SUPPORT_RATIO * voted[0][0]:
+                break  # sorted: the rest is weaker still
             yield box
     for _score, box, _pol in _candidates(gray, expected_size_px, polarity):
         yield box
@@ -183,12 +187,14 @@ def _partners(em: _EdgeMap, dist: np.ndarray, step: int = 1) -> np.ndarray:
     xs, ys, nx, ny = em.xs[::step], em.ys[::step], em.nx[::step], em.ny[::step]
     qx = np.rint(xs[:, None] + dist[None] * nx[:, None]).astype(np.intp)
     qy = np.rint(ys[:, None] + dist[None] * ny[:, None]).astype(np.intp)
-    hit = (qx >= 0) & (qx < sw) & (qy >= 0) & (qy < sh)
-    hit[hit] = em.near_edge[qy[hit], qx[hit]]
-    qgx, qgy = em.gx[qy[hit], qx[hit]], em.gy[qy[hit], qx[hit]]
-    pnx = np.broadcast_to(nx[:, None], hit.shape)[hit]
-    pny = np.broadcast_to(ny[:, None], hit.shape)[hit]
-    hit[hit] = (qgx * pnx + qgy * pny) < -0.7 * np.hypot(qgx, qgy)
+    inside = (qx >= 0) & (qx < sw) & (qy >= 0) & (qy < sh)
+    flat = qy * sw + qx  # flat indices: one gather per image instead of boolean masks
+    flat[~inside] = 0
+    hit = inside & em.near_edge.ravel()[flat]
+    i, j = np.nonzero(hit)
+    f = flat[i, j]
+    qgx, qgy = em.gx.ravel()[f], em.gy.ravel()[f]
+    hit[i, j] = (qgx * nx[i] + qgy * ny[i]) < -0.7 * np.hypot(qgx, qgy)
     return hit
 
 
