@@ -58,9 +58,16 @@ def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
     kernel = np.ones((3, 3), np.uint8)
     pols = ("dark", "light") if polarity is None else (polarity,)
     for pol in pols:
+        # each level's mask is opened (3x3) to cut 1-px bridges; a flat opening commutes
+        # with a threshold, so one grey-level opening (closing, for the dark side's
+        # complement) of the frame serves every level of the ladder
+        if pol == "dark":
+            ref, kind = cv2.morphologyEx(u8, cv2.MORPH_CLOSE, kernel), cv2.THRESH_BINARY_INV
+        else:
+            ref, kind = cv2.morphologyEx(u8, cv2.MORPH_OPEN, kernel), cv2.THRESH_BINARY
         for thr in thresholds:
-            mask = (u8 < thr) if pol == "dark" else (u8 > thr)
-            mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel)
+            # dark: u8 < thr, i.e. not u8 > thr - 1; light: u8 > thr
+            _, mask = cv2.threshold(ref, thr - 1 if pol == "dark" else thr, 1, kind)
             cnts, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
             for cnt in cnts:
                 if cnt.shape[0] < 4:
@@ -92,7 +99,7 @@ def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
                 if not core.any() or not ring.any():
                     continue
                 win = u8[y0:y1, x0:x1]
-                lin, lout = float(np.median(win[core])), float(np.median(win[ring]))
+                lin, lout = _median(win[core]), _median(win[ring])
                 if abs(lout - lin) < 8:
                     continue
                 r = (thr - lin) / (lout - lin)
@@ -111,6 +118,16 @@ def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
                 out.append((score, full.astype(float), pol))
     out.sort(key=lambda t: -t[0])
     return out
+
+
+def _median(v: np.ndarray) -> float:
+    """np.median of a 1-D array, without its generic machinery (called per blob)."""
+    n = v.size
+    k = n // 2
+    if n % 2:
+        return float(np.partition(v, k)[k])
+    part = np.partition(v, (k - 1, k))
+    return (float(part[k - 1]) + float(part[k])) / 2.0
 
 
 def _noise_sigma(img: np.ndarray) -> float:
