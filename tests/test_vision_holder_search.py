@@ -108,3 +108,30 @@ def test_batched_outline_support_matches_the_plain_computation() -> None:
             ref = _outline_reference(gx, gy, boxes[b], holder_search._SHIFTS[k])
             # remap interpolates with 5-bit fixed-point weights: about 1/32 px of slope
             assert got[b, k] == pytest.approx(ref, rel=0.02, abs=0.05)
+
+
+def test_boxes_straddling_two_objects_are_refined_last(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A voted box whose sides contrast both ways (it straddles two objects) cannot be
+    the holder: every box that could be comes first, the ladder's after all of them."""
+    a, b, c, d = _box(100, 100), _box(400, 100), _box(700, 100), _box(100, 400)
+    voted: list[Cand] = [(100.0, a, "mixed"), (80.0, b, "dark"), (50.0, c, "light")]
+    monkeypatch.setattr(holder_search, "_vote_candidates", lambda *a_, **k: voted)
+    monkeypatch.setattr(holder_search, "_candidates", lambda *a_, **k: [(1.0, d, "dark")])
+    gray = np.zeros((720, 1280), np.float32)
+    got = list(holder_search.search_candidates(gray, (300.0, 160.0), None, 15.0, 0.12))
+    assert [g.tolist() for g in got] == [b.tolist(), c.tolist(), a.tolist(), d.tolist()]
+
+
+@pytest.mark.parametrize("invert", [False, True], ids=["dark", "light"])
+def test_voted_box_knows_which_way_its_sides_contrast(invert: bool) -> None:
+    img = _scene()
+    if invert:
+        img = 255 - img
+    voted = holder_search._vote_candidates(img.astype(np.float32), (300.0, 160.0), 15.0)
+    _score, box, pol = voted[0]
+    assert pol == ("light" if invert else "dark")
+    truth = _box(520.3, 340.7)
+    # the box is found to about a 1/4-scale pixel (the fine fit does the rest)
+    d = np.linalg.norm(box[:, None] - truth[None], axis=2).min(axis=1)
+    assert d.max() < 6.0, d

@@ -32,12 +32,16 @@ def search_candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | 
     if expected_size_px is not None:
         voted = _vote_candidates(gray, expected_size_px, min_contrast,
                                  size_tolerance=size_tolerance)
-        for score, box, _pol in voted:
-            if score < _MIN_SUPPORT_RATIO * voted[0][0]:
-                break  # sorted: the rest is weaker still
-            yield box
+        strong = [(pol, box) for score, box, pol in voted
+                  if score >= _MIN_SUPPORT_RATIO * voted[0][0]]
+        # the holder's four sides contrast the same way: a box whose outline is darker
+        # outside on some sides and brighter on others (it straddles two objects) is
+        # refined only after every box that could be the holder
+        yield from (box for pol, box in strong if pol != "mixed")
+        yield from (box for pol, box in strong if pol == "mixed")
     for _score, box, _pol in _candidates(gray, expected_size_px, polarity):
         yield box
+
 
 def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
                 polarity: str | None) -> list[tuple[float, np.ndarray, str]]:
@@ -294,15 +298,19 @@ def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int
     boxes = np.array([cv2.boxPoints(((float(c[0]), float(c[1])), (eL, eS), float(a)))
                       for c, t in zip(ctrs, t0, strict=True) for a in (t, t + 90.0)],
                      float).reshape(n_p, 2, 4, 2)
-    sup = _outline_support(em.gx, em.gy, boxes.reshape(-1, 4, 2), _SHIFTS
-                           ).reshape(n_p, 2, len(_SHIFTS))
+    sides, signed = _outline_sides(em.gx, em.gy, boxes.reshape(-1, 4, 2), _SHIFTS)
+    sup = _support_score(sides).reshape(n_p, 2, len(_SHIFTS))
     j = np.argmax(sup, axis=2)  # (P, 2) best shift for either long-side direction
     s = np.take_along_axis(sup, j[..., None], axis=2)[..., 0]
     a = (s[:, 1] > s[:, 0]).astype(int)  # the first direction unless the second is better
     rows = np.arange(n_p)
     best = boxes[rows, a] + _SHIFTS[j[rows, a]][:, None, :]
     full = (best + 0.5) * _DOWN - 0.5
-    out = [(float(s[k, a[k]]), full[k], "?") for k in range(n_p)]
+    # which way each side of the chosen box contrasts (outside brighter: a dark holder)
+    side_sign = np.sign(signed.reshape(n_p, 2, len(_SHIFTS), 4)[rows, a, j[rows, a]])
+    pols = ["dark" if np.all(v > 0) else "light" if np.all(v < 0) else "mixed"
+            for v in side_sign]
+    out = [(float(s[k, a[k]]), full[k], pols[k]) for k in range(n_p)]
     out.sort(key=lambda t: -t[0])
     return out
 
@@ -311,6 +319,19 @@ def _outline_support(gx: np.ndarray, gy: np.ndarray, boxes: np.ndarray,
                      shifts: np.ndarray | None = None) -> np.ndarray:
     """(B, K): for each box (B, 4, 2) and shift (K, 2): mean |gradient . normal| along the
     middle 80 % of its sides, times the square root of (weakest side / strongest side)."""
+    return _support_score(_outline_sides(gx, gy, boxes, shifts)[0])
+
+
+def _support_score(v: np.ndarray) -> np.ndarray:
+    """The outline score from the per-side means (..., 4) of |gradient . normal|."""
+    return v.mean(axis=-1) * np.sqrt(v.min(axis=-1) / (v.max(axis=-1) + 1e-9))
+
+
+def _outline_sides(gx: np.ndarray, gy: np.ndarray, boxes: np.ndarray,
+                   shifts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(B, K, 4) twice: per box, shift and side, the mean of |gradient . outward normal|
+    and of gradient . outward normal (> 0: the outside is brighter) along the middle 80 %
+    of the side."""
     if shifts is None:
         shifts = np.zeros((1, 2))
     boxes = np.asarray(boxes, float).reshape(-1, 4, 2)
@@ -336,5 +357,6 @@ def _outline_support(gx: np.ndarray, gy: np.ndarray, boxes: np.ndarray,
     nys = np.repeat(n[..., 1], 24, axis=1).astype(np.float32)[:, None]
     proj = ax.reshape(nb, k, 96) * nxs
     proj += ay.reshape(nb, k, 96) * nys
-    v = np.abs(proj).reshape(nb, k, 4, 24).mean(axis=3, dtype=np.float64)  # (B, K, 4)
-    return v.mean(axis=2) * np.sqrt(v.min(axis=2) / (v.max(axis=2) + 1e-9))
+    proj = proj.reshape(nb, k, 4, 24)
+    return (np.abs(proj).mean(axis=3, dtype=np.float64),
+            proj.mean(axis=3, dtype=np.float64))
