@@ -135,3 +135,16 @@ def test_voted_box_knows_which_way_its_sides_contrast(invert: bool) -> None:
     # the box is found to about a 1/4-scale pixel (the fine fit does the rest)
     d = np.linalg.norm(box[:, None] - truth[None], axis=2).min(axis=1)
     assert d.max() < 6.0, d
+
+
+@pytest.mark.parametrize("n", [4095, 5000, 5001, 57000])
+def test_bracketed_selection_is_np_partition(n: int) -> None:
+    """The noise estimate's median by bracketing equals numpy's, ties and all."""
+    rng = np.random.default_rng(n)
+    k = n // 2
+    ks = [k - 1, k] if n % 2 == 0 else [k]
+    for v in (rng.normal(size=n), rng.integers(0, 4, n), np.zeros(n),
+              np.abs(rng.standard_cauchy(n))):
+        a = v.astype(np.float32)
+        np.testing.assert_array_equal(holder_search._select(a, ks), np.partition(a, ks)[ks])
+        assert float(np.mean(holder_search._select(a, ks))) == float(np.median(a))

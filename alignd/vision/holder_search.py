@@ -134,10 +134,33 @@ def _median(v: np.ndarray) -> float:
     return (float(part[k - 1]) + float(part[k])) / 2.0
 
 
+def _select(a: np.ndarray, ks: list[int]) -> np.ndarray:
+    """``np.partition(a, ks)[ks]`` for a 1-D array, exactly, in a fraction of the time for a
+    large one: the order statistics are bracketed on a sorted subsample, and only the
+    values between the brackets are partitioned (all below them precede these)."""
+    n = a.size
+    if n < 4096:
+        return np.partition(a, ks)[ks]
+    sub = np.sort(a[::16])
+    m = sub.size
+    lo = sub[max(min(ks) * m // n - 40, 0)]
+    hi = sub[min(max(ks) * m // n + 40, m - 1)]
+    below = int(np.count_nonzero(a < lo))
+    mid = a[(a >= lo) & (a <= hi)]
+    rel = [k - below for k in ks]
+    if min(rel) >= 0 and max(rel) < mid.size:
+        return np.partition(mid, rel)[rel]
+    return np.partition(a, ks)[ks]  # the subsample misled the brackets
+
+
 def _noise_sigma(img: np.ndarray) -> float:
     """Robust noise standard deviation of an image (MAD of its Laplacian)."""
     lap = cv2.Laplacian(img, cv2.CV_32F, ksize=1)
-    return float(np.median(np.abs(lap[2:-2, 2:-2]))) * 1.4826 / math.sqrt(20.0) + 1e-3
+    a = np.abs(lap[2:-2, 2:-2]).ravel()
+    k = a.size // 2
+    # np.median: the middle value, or the mean of the middle two (in the array's dtype)
+    med = float(np.mean(_select(a, [k - 1, k] if a.size % 2 == 0 else [k])))
+    return med * 1.4826 / math.sqrt(20.0) + 1e-3
 
 
 _SHIFTS = np.stack(np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)), -1).reshape(-1, 2).astype(float)
