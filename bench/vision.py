@@ -305,6 +305,7 @@ def corpus_top(n: int, seed: int) -> tuple[list[Row], dict[str, float]]:
     summary = {"found": tot_f / max(tot_n, 1), "wrong": tot_w, "n": tot_n,
                "rms_raw": _rms(groups["uncompressed"]), "rms_q80": _rms(groups["JPEG q >= 80"]),
                "ms_mean": 1e3 * float(np.mean(times)), "ms_max": 1e3 * float(np.max(times)),
+               "ms_p95": 1e3 * float(np.percentile(times, 95)),
                "track_fps": 1.0 / float(np.mean(track_t)) if track_t else math.nan}
     for m in misses:
         log_line(m)
@@ -484,8 +485,9 @@ def main(argv: list[str] | None = None) -> int:
          ts["rms_raw"] <= 0.03),
         ("top: corner RMS, JPEG q >= 80 (px)", _f(ts["rms_q80"]), "<= 0.06",
          ts["rms_q80"] <= 0.06),
-        ("top: full search, mean / max (ms)", f"{ts['ms_mean']:.1f} / {ts['ms_max']:.1f}",
-         "<= 50", ts["ms_max"] <= 50),
+        ("top: full search, mean / p95 / max (ms)",
+         f"{ts['ms_mean']:.1f} / {ts['ms_p95']:.1f} / {ts['ms_max']:.1f}", "<= 50",
+         ts["ms_max"] <= 50),
         ("top: tracking (frames/s, 1 core)", f"{ts['track_fps']:.0f}", ">= 100",
          ts["track_fps"] >= 100),
     ]

@@ -45,6 +45,7 @@ from alignd.vision.edges import (
     fit_line,
     intersect,
 )
+from alignd.vision.holder_search import search_candidates
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import fit_crossings
 
@@ -52,7 +53,6 @@ __all__ = ["HolderDetection", "YawMeasurement", "measure_yaw", "order_corners", 
 
 log = logging.getLogger(__name__)
 
-_DOWN = 4
 _AGREE_PX, _AGREE_SIGMA = 0.05, 3.0  # profile vs area corners: allowed difference
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
@@ -126,268 +126,6 @@ def _quad_angle(c: np.ndarray) -> float:
     return math.degrees(math.atan2(v[1], v[0]))
 
 
-def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
-                polarity: str | None) -> list[tuple[float, np.ndarray, str]]:
-    """Rectangular blobs as (score, 4 approx corners in full-res px, polarity)."""
-    h, w = gray.shape
-    small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
-    small = cv2.GaussianBlur(small, (0, 0), 1.0)
-    lo, hi = np.percentile(small, [0.5, 99.5])
-    u8 = np.clip((small - lo) * (255.0 / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
-    otsu, _ = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    # Otsu alone fails when shadows or a third level split the histogram: try a ladder of
-    # thresholds and keep the blobs that are rectangles (as MSER would, but cheaper)
-    thresholds = sorted({int(otsu), *range(32, 240, 32)})
-    sh, sw = u8.shape
-    min_area = 40 if expected_size_px is None else 0.4 * expected_size_px[0] * \
-        expected_size_px[1] / _DOWN ** 2
-    out = []
-    kernel = np.ones((3, 3), np.uint8)
-    pols = ("dark", "light") if polarity is None else (polarity,)
-    for pol in pols:
-        for thr in thresholds:
-            mask = (u8 < thr) if pol == "dark" else (u8 > thr)
-            mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel)
-            cnts, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-            for cnt in cnts:
-                if cnt.shape[0] < 4:
-                    continue
-                x, y, bw, bh = cv2.boundingRect(cnt)
-                # not touching the border (cannot be measured whole), not the whole frame
-                if x <= 0 or y <= 0 or x + bw >= sw or y + bh >= sh:
-                    continue
-                area = cv2.contourArea(cnt) + 0.5 * cv2.arcLength(cnt, True) + 1.0
-                if area < min_area or area > 0.5 * sh * sw:
-                    continue
-                (cx, cy), (rw, rh), ang = cv2.minAreaRect(cnt)
-                rw, rh = rw + 1.0, rh + 1.0  # pixel centres -> pixel extents
-                if rw * rh <= 0 or min(rw, rh) < 4:
-                    continue
-                rect = area / (rw * rh)
-                if rect < 0.86:
-                    continue
-                # the threshold must cut the blob's edge near half height, else the box
-                # is grown by the blur halo or shrunk (a pass-1 window misses the edge)
-                y0, y1 = max(y - 3, 0), min(y + bh + 3, sh)
-                x0, x1 = max(x - 3, 0), min(x + bw + 3, sw)
-                blob = np.zeros((y1 - y0, x1 - x0), np.uint8)
-                cv2.drawContours(blob, [cnt - np.array([x0, y0])], -1, 1, thickness=-1)
-                blob = blob.astype(bool)
-                grown = cv2.dilate(blob.astype(np.uint8), kernel, iterations=3).astype(bool)
-                core = cv2.erode(blob.astype(np.uint8), kernel, iterations=2).astype(bool)
-                ring = grown & ~cv2.dilate(blob.astype(np.uint8), kernel).astype(bool)
-                if not core.any() or not ring.any():
-                    continue
-                win = u8[y0:y1, x0:x1]
-                lin, lout = float(np.median(win[core])), float(np.median(win[ring]))
-                if abs(lout - lin) < 8:
-                    continue
-                r = (thr - lin) / (lout - lin)
-                if not 0.3 <= r <= 0.7:
-                    continue
-                score = rect * (1.0 - abs(r - 0.5)) * math.log(float(area))
-                if expected_size_px is not None:
-                    L, S = max(rw, rh) * _DOWN, min(rw, rh) * _DOWN
-                    eL, eS = max(expected_size_px), min(expected_size_px)
-                    err = max(abs(L / eL - 1), abs(S / eS - 1))
-                    if err > 0.3:
-                        continue
-                    score *= 1.0 - err
-                box = cv2.boxPoints(((cx, cy), (rw, rh), ang))
-                full = (box + 0.5) * _DOWN - 0.5
-                out.append((score, full.astype(float), pol))
-    out.sort(key=lambda t: -t[0])
-    return out
-
-
-def _noise_sigma(img: np.ndarray) -> float:
-    """Robust noise standard deviation of an image (MAD of its Laplacian)."""
-    lap = cv2.Laplacian(img, cv2.CV_32F, ksize=1)
-    return float(np.median(np.abs(lap[2:-2, 2:-2]))) * 1.4826 / math.sqrt(20.0) + 1e-3
-
-
-_SHIFTS = np.stack(np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)), -1).reshape(-1, 2).astype(float)
-
-
-@dataclass(frozen=True)
-class _EdgeMap:
-    """Significant, thin edge pixels of a 1/4-scale frame: where, which way, how strong."""
-
-    xs: np.ndarray
-    ys: np.ndarray
-    nx: np.ndarray  # unit gradient
-    ny: np.ndarray
-    mag: np.ndarray
-    gx: np.ndarray  # the whole gradient images
-    gy: np.ndarray
-    near_edge: np.ndarray  # edge pixels grown by 1 px
-
-
-def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
-                     min_contrast: float, max_peaks: int = 12, size_tolerance: float = 0.12
-                     ) -> list[tuple[float, np.ndarray, str]]:
-    """Rectangles of the expected size found by centre voting, threshold-ladder free.
-
-    At 1/4 scale every significant gradient pixel (beyond 4 noise sigma and twice the
-    minimum contrast, thinned by non-maximum suppression) that has a partner edge a whole
-    side (short or long) away along its gradient, with the opposite gradient, votes for
-    the midpoint: the holder's long sides vote along its long midline and its short sides
-    along the short one, so its centre is where the two cross; edges of anything else
-    scatter or do not pair. The pairing needs the side to within about 1 px at 1/4 scale
-    (2 % of a 160 px side), much less than ``size_tolerance``: a configured pixel size a
-    few per cent off (commissioning passes 5 %) would pair nothing. So the holder's scale
-    in the image is measured first (:func:`_pair_scales`) and the votes cast at that size.
-    At each peak the side directions are the dominant gradient orientation (mod 90 deg)
-    around it, and the long side is the assignment whose outline has the stronger gradient.
-    """
-    h, w = gray.shape
-    small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
-    small = cv2.GaussianBlur(small, (0, 0), 0.8)
-    gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3)
-    mag = cv2.magnitude(gx, gy)
-    # significant (4 noise sigma, a Sobel step response of the minimum contrast) and thin
-    # (Canny's non-maximum suppression): shading and texture do not vote
-    thr = max(4.0 * _noise_sigma(small) * math.sqrt(12.0), 2.0 * min_contrast)
-    edges = cv2.Canny(np.clip(gx * 4, -32767, 32767).astype(np.int16),
-                      np.clip(gy * 4, -32767, 32767).astype(np.int16), 4 * thr, 8 * thr,
-                      L2gradient=True)
-    ys, xs = np.nonzero(edges)
-    if xs.size < 20:
-        return []
-    m = mag[ys, xs]
-    em = _EdgeMap(xs, ys, gx[ys, xs] / m, gy[ys, xs] / m, m, gx, gy,
-                  cv2.dilate(edges, np.ones((3, 3), np.uint8)) > 0)
-    eL, eS = max(expected_size_px) / _DOWN, min(expected_size_px) / _DOWN
-    out = []
-    scales = _pair_scales(em, (eS, eL), size_tolerance)
-    for scale in scales:  # as many peaks in all as one size had
-        out += _vote_at_size(em, eL * scale, eS * scale, max_peaks // len(scales))
-    out.sort(key=lambda t: -t[0])
-    return out
-
-
-def _partners(em: _EdgeMap, dist: np.ndarray, step: int = 1) -> np.ndarray:
-    """(N / step, len(dist)) bool: edge pixel i (every ``step``-th) has a partner edge,
-    gradient the other way, ``dist[j]`` px away along its gradient (negative: against it)."""
-    sh, sw = em.near_edge.shape
-    xs, ys, nx, ny = em.xs[::step], em.ys[::step], em.nx[::step], em.ny[::step]
-    qx = np.rint(xs[:, None] + dist[None] * nx[:, None]).astype(np.intp)
-    qy = np.rint(ys[:, None] + dist[None] * ny[:, None]).astype(np.intp)
-    hit = (qx >= 0) & (qx < sw) & (qy >= 0) & (qy < sh)
-    hit[hit] = em.near_edge[qy[hit], qx[hit]]
-    qgx, qgy = em.gx[qy[hit], qx[hit]], em.gy[qy[hit], qx[hit]]
-    pnx = np.broadcast_to(nx[:, None], hit.shape)[hit]
-    pny = np.broadcast_to(ny[:, None], hit.shape)[hit]
-    hit[hit] = (qgx * pnx + qgy * pny) < -0.7 * np.hypot(qgx, qgy)
-    return hit
-
-
-def _pair_scales(em: _EdgeMap, sides: tuple[float, float], tolerance: float) -> list[float]:
-    """The holder's size in the image over the expected size (within ``tolerance``), as
-    measured from the distances at which opposite edges pair, and 1 (the expected size
-    itself: a busy scene can outscore the holder's pairs) when that differs.
-
-    For each side (short, long) the partners every edge pixel has within the tolerance are
-    counted per distance (1/4-scale px). Every pair of the holder's sides gives a narrow
-    peak (3 px: the grown edge), other edges a broad background that grows with the
-    distance; a [1, 2, 1] filter less an 11 px mean keeps the peaks. A ratio scores the
-    geometric mean of both sides' peaks there: the holder pairs at the same ratio on
-    both, other things rarely do.
-    """
-    grid = np.arange(1 - tolerance, 1 + tolerance + 1e-9, 0.005)
-    score = np.ones_like(grid)
-    for e in sides:
-        dist = np.arange(math.floor(e * (1 - tolerance)) - 6,
-                         math.ceil(e * (1 + tolerance)) + 7, dtype=float)
-        # every other edge pixel: the holder's sides have hundreds, and it halves the cost
-        counts = (_partners(em, dist, 2).sum(axis=0) + _partners(em, -dist, 2).sum(axis=0)
-                  ).astype(float)
-        peak = (np.convolve(counts, [0.25, 0.5, 0.25], "same")
-                - np.convolve(counts, np.ones(11) / 11, "same"))
-        score *= np.clip(np.interp(grid * e, dist, peak), 0.0, None)
-    k = int(np.argmax(score))
-    if score[k] <= 0 or abs(grid[k] - 1.0) < 0.005:
-        return [1.0]
-    return [float(grid[k]), 1.0]
-
-
-def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int
-                  ) -> list[tuple[float, np.ndarray, str]]:
-    """Centre voting (see :func:`_vote_candidates`) for a holder of eL x eS (1/4-scale px)."""
-    xs, ys, nx, ny, m, gx, gy = em.xs, em.ys, em.nx, em.ny, em.mag, em.gx, em.gy
-    sh, sw = em.near_edge.shape
-    acc = np.zeros(sh * sw, np.float64)
-    for d in (eS / 2, eL / 2, -eS / 2, -eL / 2):
-        # only where the opposite side is there too: an edge a whole side away, its
-        # gradient the other way (a circle, a single edge or another size does not pair)
-        ok = _partners(em, np.array([2 * d]))[:, 0]
-        cx = np.rint(xs[ok] + d * nx[ok]).astype(np.int64)
-        cy = np.rint(ys[ok] + d * ny[ok]).astype(np.int64)
-        acc += np.bincount(cy * sw + cx, minlength=sh * sw)
-    A = cv2.GaussianBlur(acc.reshape(sh, sw).astype(np.float32), (0, 0), 1.2)
-    peaks_mask = (cv2.dilate(A, np.ones((5, 5), np.uint8)) <= A) & (0.25 * A.max() < A)
-    py, px = np.nonzero(peaks_mask)
-    order = np.argsort(-A[py, px])[:max_peaks]
-    theta_px = np.degrees(np.arctan2(ny, nx)) % 90.0
-    r_max = math.hypot(eL, eS) / 2 + 3
-    out = []
-    for k in order:
-        c = np.array([px[k], py[k]], float)
-        near = (xs - c[0]) ** 2 + (ys - c[1]) ** 2 <= r_max ** 2
-        if near.sum() < 10:
-            continue
-        hist = np.bincount((theta_px[near]).astype(int) % 90, weights=m[near], minlength=90)
-        hist = np.convolve(np.concatenate([hist[-2:], hist, hist[:2]]), np.ones(5), "valid")
-        t0 = float(np.argmax(hist)) + 0.5
-        # refine: magnitude-weighted circular mean of the orientations within +-3 deg
-        dt = (theta_px[near] - t0 + 45.0) % 90.0 - 45.0
-        sel = np.abs(dt) < 3.0
-        if sel.any():
-            t0 += float(np.average(dt[sel], weights=m[near][sel]))
-        # the box of the expected size there, its long side either way, nudged by up to
-        # 3 px (1/4 scale) to where its outline has the strongest gradient: a peak made by
-        # something else (a disc's rim votes a small ring) has no such outline
-        best = None
-        for ang in (t0, t0 + 90.0):  # direction of the long side
-            box = cv2.boxPoints(((c[0], c[1]), (eL, eS), ang)).astype(float)
-            sup = _outline_support(gx, gy, box, _SHIFTS)
-            j = int(np.argmax(sup))
-            if best is None or sup[j] > best[0]:
-                best = (float(sup[j]), box + _SHIFTS[j])
-        assert best is not None
-        full = (best[1] + 0.5) * _DOWN - 0.5
-        out.append((best[0], full, "?"))
-    out.sort(key=lambda t: -t[0])
-    return out
-
-
-def _outline_support(gx: np.ndarray, gy: np.ndarray, box: np.ndarray,
-                     shifts: np.ndarray | None = None) -> np.ndarray:
-    """For each shift (K, 2) of a box: mean |gradient . normal| along the middle 80 % of
-    its sides, times the square root of (weakest side / strongest side)."""
-    if shifts is None:
-        shifts = np.zeros((1, 2))
-    ctr = box.mean(axis=0)
-    t = np.linspace(0.1, 0.9, 24)[:, None]
-    pts, nrm = [], []
-    for i in range(4):
-        p0, p1 = box[i], box[(i + 1) % 4]
-        d = p1 - p0
-        n = np.array([-d[1], d[0]]) / (np.linalg.norm(d) or 1.0)
-        if np.dot((p0 + p1) / 2 - ctr, n) < 0:
-            n = -n
-        pts.append(p0 + t * d)
-        nrm.append(np.repeat(n[None], len(t), axis=0))
-    P = np.concatenate(pts)  # (96, 2)
-    N = np.concatenate(nrm)
-    Q = (shifts[:, None, :] + P[None]).astype(np.float32)  # (K, 96, 2)
-    ax = cv2.remap(gx, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    ay = cv2.remap(gy, Q[..., 0], Q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    v = np.abs(ax * N[None, :, 0] + ay * N[None, :, 1]).reshape(len(shifts), 4, -1).mean(axis=2)
-    return v.mean(axis=1) * np.sqrt(v.min(axis=1) / (v.max(axis=1) + 1e-9))
-
-
 def _fit_sides(gray: np.ndarray, corners: np.ndarray, half_width: int, margin: float,
                min_contrast: float, lens: Lens | None = None
                ) -> list[tuple[Line | None, EdgePoints]]:
@@ -421,7 +159,8 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     """Find the holder's top face in a top-camera frame.
 
     ``expected_size_px`` (long, short side in px; from the config's holder size and pixel
-    size) makes the search look for that size (centre voting, see :func:`_vote_candidates`)
+    size) makes the search look for that size (centre voting, see
+    :func:`alignd.vision.holder_search.search_candidates`)
     and rejects any result more than ``size_tolerance`` off; ``hint`` (previous corners)
     seeds tracking, keeps the corner order and falls back to a full search when the holder
     is not there; ``polarity`` ("dark"/"light") restricts the search; ``lens`` (focal
@@ -466,14 +205,10 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     # (a frame the previous corners fit is usable; only a full search needs the check)
     gray = as_gray(image, "top image")
     check_usable(gray, min_contrast, "top image")
-    cands: list[tuple[float, np.ndarray, str]] = []
-    if expected_size_px is not None:
-        cands += _vote_candidates(gray, expected_size_px, min_contrast,
-                                  size_tolerance=size_tolerance)
-    cands += _candidates(gray, expected_size_px, polarity)
     tried: list[np.ndarray] = []
     last: HolderDetection | None = None
-    for _score, box, _pol in cands:
+    for box in search_candidates(gray, expected_size_px, polarity, min_contrast,
+                                 size_tolerance):
         ctr = box.mean(axis=0)
         if any(np.linalg.norm(ctr - t) < 8.0 for t in tried):
             continue

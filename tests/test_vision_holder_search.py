@@ -1,0 +1,150 @@
+"""The holder's full search (alignd.vision.holder_search): which candidates reach the
+refinement, in which order, and the batched outline score against a plain reference."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from alignd.vision import holder_search
+from alignd.vision.holder import track_holder
+from drivers.sim.render import Polygon, Raster, coverage
+
+Cand = tuple[float, np.ndarray, str]
+
+
+def _box(cx: float, cy: float, L: float = 300.0, S: float = 160.0, a: float = 7.0
+         ) -> np.ndarray:
+    return cv2.boxPoints(((cx, cy), (L, S), a)).astype(float)
+
+
+def _scene(contrast: float = 140.0) -> np.ndarray:
+    """One dark 300 x 160 px rectangle on a grey floor, exact edges, noise 1.5 DN."""
+    img = np.full((720, 1280), 190.0, np.float32)
+    ras = Raster((1280, 720), 1000.0, (640.0, 360.0), 0.0)
+    cov = coverage(Polygon(_box(520.3, 340.7)), ras, (0, 0, 1280, 720))
+    img += -contrast * cov
+    noise = np.random.default_rng(7).normal(0, 1.5, img.shape)
+    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8)
+
+
+def test_the_threshold_ladder_is_built_only_when_the_vote_fails(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """With an expected size the voted box is refined first and passes: the ladder (a
+    third of a search's time) is never built. Without a size it is the only source."""
+    img = _scene()
+    built: list[bool] = []
+    ladder = holder_search._candidates
+
+    def counted(*args: object, **kw: object) -> list[Cand]:
+        built.append(True)
+        return ladder(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(holder_search, "_candidates", counted)
+    det = track_holder(img, expected_size_px=(300.0, 160.0))
+    assert det.ok and not built
+    free = track_holder(img)
+    assert free.ok and built == [True]
+    np.testing.assert_allclose(det.corners_px, free.corners_px, atol=0.005)
+
+
+def test_weak_voted_boxes_are_not_refined_and_the_ladder_follows(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Voted boxes come strongest first; one with under a tenth of the best box's outline
+    support (a peak in texture) is dropped, and the ladder's boxes come after the rest."""
+    a, b, weak, d = _box(100, 100), _box(400, 100), _box(700, 100), _box(100, 400)
+    voted: list[Cand] = [(100.0, a, "?"), (11.0, b, "?"), (9.0, weak, "?")]
+    monkeypatch.setattr(holder_search, "_vote_candidates", lambda *a_, **k: voted)
+    monkeypatch.setattr(holder_search, "_candidates", lambda *a_, **k: [(1.0, d, "dark")])
+    gray = np.zeros((720, 1280), np.float32)
+    got = list(holder_search.search_candidates(gray, (300.0, 160.0), None, 15.0, 0.12))
+    assert [g.tolist() for g in got] == [a.tolist(), b.tolist(), d.tolist()]
+    # without an expected size the vote is not asked at all
+    got = list(holder_search.search_candidates(gray, None, None, 15.0, 0.12))
+    assert [g.tolist() for g in got] == [d.tolist()]
+
+
+def _outline_reference(gx: np.ndarray, gy: np.ndarray, box: np.ndarray,
+                       shift: np.ndarray) -> float:
+    """The outline score of one box at one shift, written out side by side."""
+    ctr = box.mean(axis=0)
+    sides = []
+    for i in range(4):
+        p0, p1 = box[i] + shift, box[(i + 1) % 4] + shift
+        d = p1 - p0
+        n = np.array([-d[1], d[0]]) / np.linalg.norm(d)
+        if np.dot((p0 + p1) / 2 - shift - ctr, n) < 0:
+            n = -n
+        vals = []
+        for t in np.linspace(0.1, 0.9, 24):
+            p = p0 + t * d
+            x0, y0 = int(np.floor(p[0])), int(np.floor(p[1]))
+            fx, fy = p[0] - x0, p[1] - y0
+
+            def bil(g: np.ndarray, x0: int = x0, y0: int = y0, fx: float = fx,
+                    fy: float = fy) -> float:
+                return float((1 - fy) * ((1 - fx) * g[y0, x0] + fx * g[y0, x0 + 1])
+                             + fy * ((1 - fx) * g[y0 + 1, x0] + fx * g[y0 + 1, x0 + 1]))
+            vals.append(abs(bil(gx) * n[0] + bil(gy) * n[1]))
+        sides.append(np.mean(vals))
+    v = np.asarray(sides)
+    return float(v.mean() * np.sqrt(v.min() / (v.max() + 1e-9)))
+
+
+def test_batched_outline_support_matches_the_plain_computation() -> None:
+    """Every box and shift at once (one remap) gives each box's score as computed alone:
+    the ranking of the voted boxes did not change with the batching."""
+    rng = np.random.default_rng(11)
+    gx = cv2.GaussianBlur(rng.normal(0, 40, (180, 320)).astype(np.float32), (0, 0), 1.5)
+    gy = cv2.GaussianBlur(rng.normal(0, 40, (180, 320)).astype(np.float32), (0, 0), 1.5)
+    boxes = np.array([cv2.boxPoints(((float(rng.uniform(60, 260)), float(rng.uniform(50, 130))),
+                                     (float(rng.uniform(30, 80)), float(rng.uniform(20, 40))),
+                                     float(rng.uniform(0, 180)))) for _ in range(5)], float)
+    got = holder_search._outline_support(gx, gy, boxes, holder_search._SHIFTS)
+    assert got.shape == (5, len(holder_search._SHIFTS))
+    for b in range(5):
+        for k in (0, 17, 24, 48):  # corners and centre of the 7 x 7 shift grid
+            ref = _outline_reference(gx, gy, boxes[b], holder_search._SHIFTS[k])
+            # remap interpolates with 5-bit fixed-point weights: about 1/32 px of slope
+            assert got[b, k] == pytest.approx(ref, rel=0.02, abs=0.05)
+
+
+def test_boxes_straddling_two_objects_are_refined_last(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A voted box whose sides contrast both ways (it straddles two objects) cannot be
+    the holder: every box that could be comes first, the ladder's after all of them."""
+    a, b, c, d = _box(100, 100), _box(400, 100), _box(700, 100), _box(100, 400)
+    voted: list[Cand] = [(100.0, a, "mixed"), (80.0, b, "dark"), (50.0, c, "light")]
+    monkeypatch.setattr(holder_search, "_vote_candidates", lambda *a_, **k: voted)
+    monkeypatch.setattr(holder_search, "_candidates", lambda *a_, **k: [(1.0, d, "dark")])
+    gray = np.zeros((720, 1280), np.float32)
+    got = list(holder_search.search_candidates(gray, (300.0, 160.0), None, 15.0, 0.12))
+    assert [g.tolist() for g in got] == [b.tolist(), c.tolist(), a.tolist(), d.tolist()]
+
+
+@pytest.mark.parametrize("invert", [False, True], ids=["dark", "light"])
+def test_voted_box_knows_which_way_its_sides_contrast(invert: bool) -> None:
+    img = _scene()
+    if invert:
+        img = 255 - img
+    voted = holder_search._vote_candidates(img.astype(np.float32), (300.0, 160.0), 15.0)
+    _score, box, pol = voted[0]
+    assert pol == ("light" if invert else "dark")
+    truth = _box(520.3, 340.7)
+    # the box is found to about a 1/4-scale pixel (the fine fit does the rest)
+    d = np.linalg.norm(box[:, None] - truth[None], axis=2).min(axis=1)
+    assert d.max() < 6.0, d
+
+
+@pytest.mark.parametrize("n", [4095, 5000, 5001, 57000])
+def test_bracketed_selection_is_np_partition(n: int) -> None:
+    """The noise estimate's median by bracketing equals numpy's, ties and all."""
+    rng = np.random.default_rng(n)
+    k = n // 2
+    ks = [k - 1, k] if n % 2 == 0 else [k]
+    for v in (rng.normal(size=n), rng.integers(0, 4, n), np.zeros(n),
+              np.abs(rng.standard_cauchy(n))):
+        a = v.astype(np.float32)
+        np.testing.assert_array_equal(holder_search._select(a, ks), np.partition(a, ks)[ks])
+        assert float(np.mean(holder_search._select(a, ks))) == float(np.median(a))
