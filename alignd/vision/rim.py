@@ -155,6 +155,7 @@ class RimFit:
     rms_px: float
     n_points: int
     conic: np.ndarray  # (A, B, C, D, E, F)
+    eccentricity_std: float = math.nan  # standard uncertainty of e (from the fit)
 
     def to_json(self) -> dict[str, object]:
         zen = self.camera_zenith_deg
@@ -162,6 +163,8 @@ class RimFit:
                             "axes_px": [float(v) for v in self.axes_px],
                             "angle_deg": self.angle_deg},
                 "eccentricity": self.eccentricity,
+                "eccentricity_std": (self.eccentricity_std
+                                     if math.isfinite(self.eccentricity_std) else None),
                 "camera_zenith_deg": zen if math.isfinite(zen) else None,
                 "rms_px": self.rms_px, "n_points": self.n_points}
 
@@ -635,7 +638,7 @@ def _geometric_fit(p: Ellipse, xy: np.ndarray, sigma: np.ndarray, iterations: in
     (Gauss-Newton from a close start), with Tukey's biweight on the normalised residuals;
     returns the parameters and the inliers (within 3.5 robust sigma)."""
     p = np.array(p, float)
-    sig = np.maximum(sigma, 0.5 * float(np.median(sigma)) + 0.002)
+    sig = _point_sigma(sigma)
     z = np.zeros(len(xy))
     sc = 1.0
     for _ in range(iterations):
@@ -656,6 +659,32 @@ def _geometric_fit(p: Ellipse, xy: np.ndarray, sigma: np.ndarray, iterations: in
             break
     z = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0] / sig
     return p, np.abs(z) <= 3.5 * sc
+
+
+def _point_sigma(sigma: np.ndarray) -> np.ndarray:
+    """Per-point standard errors floored (a noise-free arc must not outweigh the rest)."""
+    return np.maximum(sigma, 0.5 * float(np.median(sigma)) + 0.002)
+
+
+def _ellipse_covariance(p: Ellipse, xy: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Covariance of (cx, cy, a, b, theta) from the points the fit kept: the normal
+    matrix of their weighted distances, scaled by their actual scatter (so texture or
+    compression that the per-arc standard errors miss still counts)."""
+    sig = _point_sigma(sigma)
+    z = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0] / sig
+    J = _distance_jacobian(p, xy[:, 0], xy[:, 1]) / sig[:, None]
+    s2 = float(np.sum(z * z)) / max(len(z) - 5, 1)
+    return np.linalg.inv(J.T @ J + 1e-12 * np.eye(5)) * s2
+
+
+def _eccentricity_std(a: float, b: float, cov_ab: np.ndarray) -> float:
+    """Standard uncertainty of e = sqrt(1 - (b/a)^2) (a >= b) from the axes' covariance,
+    through e^2 (linear in the axes' ratio), so it stays finite at e = 0."""
+    g = np.array([2 * b * b / a ** 3, -2 * b / (a * a)])  # d(e^2)/d(a, b)
+    var_e2 = float(g @ cov_ab @ g)
+    e = math.sqrt(max(0.0, 1.0 - (b / a) ** 2))
+    return math.sqrt(max(var_e2, 0.0)) / (2 * max(e, math.sqrt(math.sqrt(max(var_e2, 0.0)))
+                                                   + 1e-12))
 
 
 def _consistent(prof: _Profiles, min_contrast: float) -> np.ndarray:
@@ -729,16 +758,20 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
         raise VisionError(f"rim image: the rim's edge was traced over only {100 * cover:.0f} % "
                           f"of its circumference (rms {rms:.2f} px); need "
                           f"{100 * min_coverage:.0f} % within {max_rms_px:g} px")
+    cov = _ellipse_covariance(p, xy, prof.sigma[use])[2:4, 2:4]
     cx, cy, a, b, t = (float(v) for v in p)
     if b > a:
         a, b, t = b, a, t + math.pi / 2
+        cov = cov[::-1, ::-1]
     ang = (math.degrees(t) + 90.0) % 180.0 - 90.0
     e = math.sqrt(max(0.0, 1.0 - (b / a) ** 2))
+    e_std = _eccentricity_std(a, b, cov)
     zen = (camera_zenith_from_eccentricity(e, radius_mm, height_mm)
            if radius_mm and height_mm else math.nan)
     return RimFit(center_px=np.array([cx, cy]), axes_px=(a, b), angle_deg=ang, eccentricity=e,
                   camera_zenith_deg=zen, rms_px=rms, n_points=int(use.sum()),
-                  conic=_conic_from_params(np.array([cx, cy, a, b, math.radians(ang)])))
+                  conic=_conic_from_params(np.array([cx, cy, a, b, math.radians(ang)])),
+                  eccentricity_std=e_std)
 
 
 # ---- perspective correction --------------------------------------------------------------
