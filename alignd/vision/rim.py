@@ -353,32 +353,9 @@ def _outer_crossings(gray: np.ndarray, k: np.ndarray, min_contrast: float,
     my = (py[:, None] + s[None] * ny[:, None]).astype(np.float32)
     prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                      borderValue=float("nan"))
-    pts = []
-    for i in range(n):
-        v = prof[i]
-        if not np.all(np.isfinite(v)):
-            continue
-        bg = float(np.median(v[:6]))
-        d = np.abs(v - bg)
-        strong = np.flatnonzero(d > max(min_contrast, 0.35 * d.max()))
-        if strong.size == 0 or d.max() < min_contrast:
-            continue
-        j = strong[0]
-        # the step's level: a few samples past the first strong one
-        lvl = float(np.median(v[j:j + 6]))
-        half = abs(lvl - bg) / 2
-        jj = np.flatnonzero(d[:j + 1] >= half)
-        if jj.size == 0:
-            continue
-        j1 = int(jj[0])
-        if j1 == 0:
-            continue
-        f = (half - d[j1 - 1]) / max(d[j1] - d[j1 - 1], 1e-9)
-        t = s[j1 - 1] + f * (s[j1] - s[j1 - 1])
-        pts.append((px[i] + t * nx[i], py[i] + t * ny[i]))
-    if len(pts) < 20:
+    xy = _first_half_crossings(prof, s, px, py, nx, ny, min_contrast)
+    if len(xy) < 20:
         raise VisionError("rim image: the rim's outer edge could not be traced")
-    xy = np.asarray(pts)
     k2 = fit_ellipse(xy)
     for _ in range(3):
         r = _sampson(k2, xy)
@@ -388,6 +365,37 @@ def _outer_crossings(gray: np.ndarray, k: np.ndarray, min_contrast: float,
         xy = xy[keep]
         k2 = fit_ellipse(xy)
     return k2
+
+
+def _first_half_crossings(prof: np.ndarray, s: np.ndarray, px: np.ndarray, py: np.ndarray,
+                          nx: np.ndarray, ny: np.ndarray, min_contrast: float) -> np.ndarray:
+    """For each profile (a row, sampled at offsets ``s`` from the background inward): the
+    background is the median of its first 6 samples, the first strong step is the first
+    sample off it by more than ``min_contrast`` and 35 % of the row's largest step, the
+    step's level the median of 6 samples from there; returns the points where the row
+    first crosses half that step (linear interpolation), rows without one left out."""
+    fin = np.all(np.isfinite(prof), axis=1)
+    prof, px, py, nx, ny = prof[fin], px[fin], py[fin], nx[fin], ny[fin]
+    m = prof.shape[1]
+    bg = np.median(prof[:, :6], axis=1)
+    d = np.abs(prof - bg[:, None])
+    dmax = d.max(axis=1) if m else np.zeros(len(prof))
+    strong = d > np.maximum(min_contrast, 0.35 * dmax)[:, None]
+    has = strong.any(axis=1) & (dmax >= min_contrast)
+    j = np.argmax(strong, axis=1)
+    win = j[:, None] + np.arange(6)[None]
+    lvl = np.nanmedian(np.where(win < m, np.take_along_axis(prof, np.minimum(win, m - 1),
+                                                            axis=1), np.nan), axis=1)
+    half = np.abs(lvl - bg) / 2
+    ge = (d >= half[:, None]) & (np.arange(m)[None] <= j[:, None])
+    j1 = np.argmax(ge, axis=1)
+    has &= ge.any(axis=1) & (j1 > 0)
+    r = np.flatnonzero(has)
+    j1 = j1[r]
+    d0, d1 = d[r, j1 - 1], d[r, j1]
+    f = (half[r] - d0) / np.maximum(d1 - d0, 1e-9)
+    t = s[j1 - 1] + f * (s[j1] - s[j1 - 1])
+    return np.column_stack([px[r] + t * nx[r], py[r] + t * ny[r]])
 
 
 def _rim_points(gray: np.ndarray, k: np.ndarray, half_width: int, min_contrast: float,
