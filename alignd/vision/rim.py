@@ -186,6 +186,7 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
     sh, sw = u8.shape
     ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     cands: list[tuple[float, np.ndarray, np.ndarray]] = []  # (points, params, full-res pts)
+    conics: list[np.ndarray] = []  # the candidates' conics at 1/4 scale
     for thr in range(32, 240, 32):
         for mask in (u8 < thr, u8 > thr):
             m8 = mask.astype(np.uint8)
@@ -202,6 +203,8 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
                     if inner.mean() < 0.6 or inner.sum() < 40:
                         continue
                     pts = pts[inner]
+                    if any(np.mean(np.abs(_sampson(kc, pts)) < 1.0) > 0.9 for kc in conics):
+                        continue  # the same ellipse at another level: no need to fit it
                     fit = _robust_ellipse(pts, min_cover=0.3)
                     if fit is None:
                         continue
@@ -217,6 +220,7 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
                         continue  # the same ellipse at another threshold
                     full = (pts[keep] + 0.5) * f - 0.5
                     cands.append((float(keep.sum()), np.array([*par, ang]), full))
+                    conics.append(k)
     if not cands:
         raise VisionError("rim image: no elliptical rim found")
     cands.sort(key=lambda c: -c[0])
