@@ -3,6 +3,7 @@ randomised corpus of scenes we did not draw for the vision (drivers.sim.scenes).
 
     python bench/vision.py            # full run (>= 1000 top, 300 side, 200 rim scenes)
     python bench/vision.py --quick    # CI-sized run
+    python bench/vision.py --only rim --rim-scenes 1000   # the rim alone, more scenes
 
 Part 1, our renderer (the rig's simulated cameras): read noise 2 DN, 8-bit, defocus blur
 0.6 px, a lighting gradient of 20 % across the width and 10 % across the height, holder
@@ -358,13 +359,20 @@ def corpus_side(n: int, seed: int) -> tuple[list[Row], dict[str, float]]:
     return rows, summary
 
 
+RIM_E_STD = 0.001  # a third of the 0.003 bound: a fit less certain than this says so
+
+
 def corpus_rim(n: int, seed: int) -> tuple[list[Row], dict[str, float]]:
+    """n randomised rim scenes, the categories in turn. "found": an ellipse returned;
+    "uncertain": found, but its e's standard uncertainty exceeds RIM_E_STD, so it cannot
+    support the 0.003 bound (refused, with the reason listed); the errors are over the
+    rest; "pull" is the largest |error| / standard uncertainty."""
     rng = np.random.default_rng(seed)
     per: dict[str, dict[str, list[float]]] = {}
     for i in range(n):
         cat = RIM_CATEGORIES[i % len(RIM_CATEGORIES)]
         sc = random_rim_scene(rng, cat)
-        d = per.setdefault(cat, {"n": [], "found": [], "err": []})
+        d = per.setdefault(cat, {"n": [], "found": [], "uncertain": [], "err": [], "pull": []})
         d["n"].append(1)
         try:
             f = fit_rim(sc.image, None, None)
@@ -372,19 +380,70 @@ def corpus_rim(n: int, seed: int) -> tuple[list[Row], dict[str, float]]:
             log_line(f"rim #{i} ({cat}): {str(exc)[:110]}")
             continue
         d["found"].append(1)
-        d["err"].append(f.eccentricity - sc.eccentricity)
+        err = f.eccentricity - sc.eccentricity
+        if not f.eccentricity_std <= RIM_E_STD:
+            d["uncertain"].append(1)
+            log_line(f"rim #{i} ({cat}): uncertain, e {f.eccentricity:.4f} +- "
+                     f"{f.eccentricity_std:.4f} (true {sc.eccentricity:.4f})")
+            continue
+        d["err"].append(err)
+        d["pull"].append(abs(err) / f.eccentricity_std)
     rows: list[Row] = []
-    tn = tf = 0
+    tn = tf = tu = 0
     errs: list[float] = []
+    pulls: list[float] = []
     for cat, d in per.items():
-        nn, nf = len(d["n"]), len(d["found"])
-        tn, tf = tn + nn, tf + nf
+        nn, nf, nu = len(d["n"]), len(d["found"]), len(d["uncertain"])
+        tn, tf, tu = tn + nn, tf + nf, tu + nu
         errs += d["err"]
-        rows.append((cat, str(nn), f"{100 * nf / nn:.1f}", "", _f(_rms(d["err"]), 5),
-                     _f(max(map(abs, d["err"]), default=math.nan), 5)))
-    rows.append(("total", str(tn), f"{100 * tf / max(tn, 1):.1f}", "", _f(_rms(errs), 5),
-                 _f(max(map(abs, errs), default=math.nan), 5)))
-    return rows, {"found": tf / max(tn, 1), "max": max(map(abs, errs), default=math.nan)}
+        pulls += d["pull"]
+        rows.append((cat, str(nn), f"{100 * nf / nn:.1f}", str(nu), _f(_rms(d["err"]), 5),
+                     _f(max(map(abs, d["err"]), default=math.nan), 5),
+                     _f(max(d["pull"], default=math.nan), 1)))
+    rows.append(("total", str(tn), f"{100 * tf / max(tn, 1):.1f}", str(tu), _f(_rms(errs), 5),
+                 _f(max(map(abs, errs), default=math.nan), 5),
+                 _f(max(pulls, default=math.nan), 1)))
+    return rows, {"found": tf / max(tn, 1), "certain": (tf - tu) / max(tn, 1),
+                  "max": max(map(abs, errs), default=math.nan)}
+
+
+def print_rim(c_rim: int, seed: int) -> dict[str, float]:
+    r_rows, rs = corpus_rim(c_rim, seed)
+    print(f"\nrandomised rim scenes (eccentricity 0.01-0.2; {c_rim} scenes; errors over the "
+          f"fits whose e is certain to {RIM_E_STD:g})")
+    print_table(("category", "n", "found %", "uncertain", "e error RMS", "max", "pull"),
+                r_rows)
+    return rs
+
+
+def rim_targets(rs: dict[str, float]) -> list[tuple[str, str, str, bool]]:
+    return [
+        ("rim: found (%)", f"{100 * rs['found']:.1f}", "(info)", True),
+        ("rim: found and certain to 0.001 (%)", f"{100 * rs['certain']:.1f}", "(info)", True),
+        ("rim: e max error", _f(rs["max"], 5), "<= 0.003", rs["max"] <= 0.003),
+    ]
+
+
+def rim_rows(n_rim: int, seed: int) -> list[tuple[str, str, str, str, str]]:
+    """Part 1's rim rows: e and the camera zenith on our own renderer."""
+    rows: list[tuple[str, str, str, str, str]] = []
+    for e in (0.02, 0.05, 0.1, 0.2):
+        r = rim_accuracy(e, n_rim, seed)
+        rows.append((f"eccentricity max error, e = {e:.2f}", f"{r['max']:.5f}", "<= 0.005",
+                     f"{r['b_max']:.4f} fitEllipse", "PASS" if r["max"] <= 0.005 else "FAIL"))
+        rows.append((f"camera zenith max error, e = {e:.2f} (deg)", f"{r['zen_max']:.4f}",
+                     "(info)", "", ""))
+    return rows
+
+
+def print_targets(targets: list[tuple[str, str, str, bool]]) -> None:
+    print("\ncorpus targets")
+    print_table(("quantity", "alignd", "target", ""),
+                [(q, v, t, "PASS" if ok else "FAIL") for q, v, t, ok in targets])
+    if _NOTES:
+        print(f"\nmisses and wrong results ({len(_NOTES)}):")
+        for line in _NOTES:
+            print(f"  {line}")
 
 
 _NOTES: list[str] = []
@@ -408,6 +467,9 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="few frames (CI)")
     ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--only", choices=("rim",), help="run only the rim's rows and corpus")
+    ap.add_argument("--rim-scenes", type=int, default=None,
+                    help="randomised rim scenes (default 200, 8 with --quick)")
     args = ap.parse_args(argv)
     n_top = 4 if args.quick else 40
     n_side = 3 if args.quick else 30
@@ -415,8 +477,14 @@ def main(argv: list[str] | None = None) -> int:
     n_speed = 10 if args.quick else 120
     c_top = 2 * len(TOP_CATEGORIES) if args.quick else 1001
     c_side = 2 * len(SIDE_CATEGORIES) if args.quick else 300
-    c_rim = 2 * len(RIM_CATEGORIES) if args.quick else 200
+    c_rim = args.rim_scenes or (2 * len(RIM_CATEGORIES) if args.quick else 200)
     cv2.setNumThreads(1)
+    if args.only == "rim":
+        print("Part 1: our renderer")
+        print_table(("quantity", "alignd", "target", "baseline", ""),
+                    rim_rows(n_rim, args.seed))
+        print_targets(rim_targets(print_rim(c_rim, args.seed + 300)))
+        return 0
 
     rows: list[tuple[str, str, str, str, str]] = []
 
@@ -443,12 +511,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{s['b_rms']:.4f} hough", s["rms"] <= 0.002)
         row(f"side tilt max error, {label} (deg)", f"{s['max']:.5f}", "(info)",
             f"{s['b_max']:.4f} hough", None)
-    for e in (0.02, 0.05, 0.1, 0.2):
-        r = rim_accuracy(e, n_rim, args.seed)
-        row(f"eccentricity max error, e = {e:.2f}", f"{r['max']:.5f}", "<= 0.005",
-            f"{r['b_max']:.4f} fitEllipse", r["max"] <= 0.005)
-        row(f"camera zenith max error, e = {e:.2f} (deg)", f"{r['zen_max']:.4f}", "(info)",
-            "", None)
+    rows += rim_rows(n_rim, args.seed)
     sp = speed(n_speed)
     row("top frames analysed per second, 1 core", f"{sp['fps']:.0f}", ">= 60",
         f"{sp['b_fps']:.0f} rect", sp["fps"] >= 60)
@@ -467,9 +530,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nrandomised side scenes (tilt; {c_side} scenes, each with and without regions)")
     print_table(("mode: category", "n", "found %", "wrong edge", "tilt RMS deg",
                  "max deg"), s_rows)
-    r_rows, rs = corpus_rim(c_rim, args.seed + 300)
-    print(f"\nrandomised rim scenes (eccentricity 0.01-0.2; {c_rim} scenes)")
-    print_table(("category", "n", "found %", "", "e error RMS", "max"), r_rows)
+    rs = print_rim(c_rim, args.seed + 300)
     targets: list[tuple[str, str, str, bool]] = [
         ("top: found (%)", f"{100 * ts['found']:.2f}", ">= 99.5", ts["found"] >= 0.995),
         ("top: wrong detections", f"{ts['wrong']:.0f}", "0", ts["wrong"] == 0),
@@ -488,16 +549,9 @@ def main(argv: list[str] | None = None) -> int:
         ("side automatic: found (%)", f"{100 * ss['auto_found']:.2f}", ">= 97",
          ss["auto_found"] >= 0.97),
         ("side automatic: wrong edge", f"{ss['auto_wrong']:.0f}", "0", ss["auto_wrong"] == 0),
-        ("rim: found (%)", f"{100 * rs['found']:.1f}", "(info)", True),
-        ("rim: e max error", _f(rs["max"], 5), "<= 0.003", rs["max"] <= 0.003),
+        *rim_targets(rs),
     ]
-    print("\ncorpus targets")
-    print_table(("quantity", "alignd", "target", ""),
-                [(q, v, t, "PASS" if ok else "FAIL") for q, v, t, ok in targets])
-    if _NOTES:
-        print(f"\nmisses and wrong results ({len(_NOTES)}):")
-        for line in _NOTES:
-            print(f"  {line}")
+    print_targets(targets)
     return 0
 
 

@@ -29,6 +29,7 @@ them the homography that rectifies image points onto the turntable plane
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -170,9 +171,8 @@ class RimFit:
 
 
 def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
-    """The rim at 1/4 scale, as a full-res conic: elliptical contours of either polarity
-    at a ladder of thresholds, with and without thin structures (cables) opened and
-    closed away, each checked against the image (:func:`_edge_support`); the best
+    """The rim at 1/4 scale, as a full-res conic: elliptical outlines (:func:`_contours`),
+    each checked against the image (:func:`_edge_support`); the best
     supported wins, the outermost of those about as well supported (a rim ring's outer
     edge, not its inner one)."""
     h, w = gray.shape
@@ -184,43 +184,35 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
         raise VisionError("rim image: too little contrast for a rim")
     u8 = np.clip((small - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
     sh, sw = u8.shape
-    ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     cands: list[tuple[float, np.ndarray, np.ndarray]] = []  # (points, params, full-res pts)
     conics: list[np.ndarray] = []  # the candidates' conics at 1/4 scale
-    for thr in range(32, 240, 32):
-        for mask in (u8 < thr, u8 > thr):
-            m8 = mask.astype(np.uint8)
-            m_oc = cv2.morphologyEx(cv2.morphologyEx(m8, cv2.MORPH_OPEN, ker),
-                                    cv2.MORPH_CLOSE, ker)
-            for m in (m8, m_oc):
-                cnts, _ = cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
-                for cnt in cnts:
-                    if cnt.shape[0] < 40:
-                        continue
-                    pts = cnt[:, 0, :].astype(float)
-                    inner = ((pts[:, 0] > 1) & (pts[:, 0] < sw - 2) & (pts[:, 1] > 1)
-                             & (pts[:, 1] < sh - 2))
-                    if inner.mean() < 0.6 or inner.sum() < 40:
-                        continue
-                    pts = pts[inner]
-                    if any(np.mean(np.abs(_sampson(kc, pts)) < 1.0) > 0.9 for kc in conics):
-                        continue  # the same ellipse at another level: no need to fit it
-                    fit = _robust_ellipse(pts, min_cover=0.3)
-                    if fit is None:
-                        continue
-                    k, keep = fit
-                    try:
-                        ctr, (a, b), ang = _conic_params(k)
-                    except (VisionError, np.linalg.LinAlgError):
-                        continue
-                    if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
-                        continue
-                    par = np.array([ctr[0], ctr[1], a, b])
-                    if any(np.max(np.abs(c[1][:4] - par)) < 1.0 for c in cands):
-                        continue  # the same ellipse at another threshold
-                    full = (pts[keep] + 0.5) * f - 0.5
-                    cands.append((float(keep.sum()), np.array([*par, ang]), full))
-                    conics.append(k)
+    for cnt in _contours(u8):
+        if cnt.shape[0] < 40:
+            continue
+        pts = cnt[:, 0, :].astype(float)
+        inner = ((pts[:, 0] > 1) & (pts[:, 0] < sw - 2) & (pts[:, 1] > 1)
+                 & (pts[:, 1] < sh - 2))
+        if inner.mean() < 0.6 or inner.sum() < 40:
+            continue
+        pts = pts[inner]
+        if any(np.mean(np.abs(_sampson(kc, pts)) < 1.0) > 0.9 for kc in conics):
+            continue  # the same ellipse at another level: no need to fit it
+        fit = _robust_ellipse(pts, min_cover=0.3)
+        if fit is None:
+            continue
+        k, keep = fit
+        try:
+            ctr, (a, b), ang = _conic_params(k)
+        except (VisionError, np.linalg.LinAlgError):
+            continue
+        if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
+            continue
+        par = np.array([ctr[0], ctr[1], a, b])
+        if any(np.max(np.abs(c[1][:4] - par)) < 1.0 for c in cands):
+            continue  # the same ellipse at another threshold
+        full = (pts[keep] + 0.5) * f - 0.5
+        cands.append((float(keep.sum()), np.array([*par, ang]), full))
+        conics.append(k)
     if not cands:
         raise VisionError("rim image: no elliptical rim found")
     cands.sort(key=lambda c: -c[0])
@@ -240,6 +232,23 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
                           f"runs along only {100 * top:.0f} % of it)")
     near = [(k, _conic_params(k)[1][0]) for sc, k in scored if sc >= top - 0.05]
     return max(near, key=lambda t: t[1])[0]
+
+
+def _contours(u8: np.ndarray) -> Iterator[np.ndarray]:
+    """Outlines that may hold the rim: the contours at a ladder of levels of either
+    polarity, with and without thin structures (cables) opened and closed away, then the
+    chains of edge pixels (Canny), which still follow the rim where a shadow or a floor
+    as bright as the disc breaks every level's region open."""
+    ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    for thr in range(32, 240, 32):
+        for mask in (u8 < thr, u8 > thr):
+            m8 = mask.astype(np.uint8)
+            m_oc = cv2.morphologyEx(cv2.morphologyEx(m8, cv2.MORPH_OPEN, ker),
+                                    cv2.MORPH_CLOSE, ker)
+            for m in (m8, m_oc):
+                yield from cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)[0]
+    edges = cv2.Canny(u8, 25, 60, L2gradient=True)
+    yield from cv2.findContours(edges, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)[0]
 
 
 def _edge_support(gray: np.ndarray, k: np.ndarray, min_contrast: float, n: int = 240
@@ -511,14 +520,19 @@ class _Profiles:
 
 def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float = 12.0,
                    iterations: int = 10) -> _Profiles:
-    """Fit I = b0 + b1 d + c0 Phi((d - delta) / s) to the pixels within
-    ``half_band`` px of the ellipse, segment by segment (arcs of ~seg_px): delta is the
-    edge's offset along the normal, d the pixel's signed distance to the ellipse (exact
-    pixel positions, no interpolation). The levels and a slope across the edge absorb
-    lighting gradients, vignetting and either polarity (one slope for both sides: a slope
-    of its own on each side correlates with delta and costs 2.5x in its precision, for a
-    bias that, from a linear light gradient, moves the centre only, not the axes; a
-    texture's slope on one side only is a local error, smaller than that noise)."""
+    """Fit I = b0 + b1 d + c0 Phi(t) + b2 s (t Phi(t) + phi(t)), t = (d - delta) / s, to
+    the pixels within ``half_band`` px of the ellipse, segment by segment (arcs of
+    ~seg_px): delta is the edge's offset along the normal, d the pixel's signed distance
+    to the ellipse (exact pixel positions, no interpolation), s the edge's width. The
+    levels and the slopes absorb lighting gradients, vignetting, shading and either
+    polarity: b1 is the slope inside, b1 + b2 outside, the last term being the blur of
+    b2 max(d - delta, 0), a kink at the edge blurred as the edge is. The floor and the
+    disc slope differently under any light (their levels differ) and a textured floor
+    slopes on its own: one slope for both sides moved each arc's edge by ~0.1 px per
+    DN/px of the difference, times the contrast's inverse, in a pattern that varies round
+    the rim (e off by 0.003-0.009 in the corpus' worst frames). The second slope costs
+    precision, the less the wider the band (+-8 px and more: delta's standard error
+    x1.33 against one slope at +-5 px; e's median standard error in the corpus +17 %)."""
     h, w = gray.shape
     cx, cy, a, b, _t = p
     if not (np.all(np.isfinite(p)) and min(a, b) > 5.0):
@@ -556,9 +570,9 @@ def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float
     def segsum(v: np.ndarray) -> np.ndarray:  # sums over each present segment
         return np.add.reduceat(v, st, axis=0)
 
+    nf = 6
     # start: each side's mean level, flat, no offset, s = 1 px
-    P = np.zeros((K, 5))
-    nf = 5
+    P = np.zeros((K, nf))
     P[:, 0] = np.bincount(seg, weights=np.where(d < -1.0, val, 0.0), minlength=K) / np.maximum(
         n_in, 1)
     P[:, 2] = np.bincount(seg, weights=np.where(d > 1.0, val, 0.0), minlength=K) / np.maximum(
@@ -567,17 +581,25 @@ def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float
     wts = np.ones_like(d)
     lam = 1e-3
     res = np.zeros_like(d)
-    for it in range(iterations):
+
+    def model(P: np.ndarray) -> tuple[np.ndarray, ...]:
         b0, b1, c0, dl, s = (P[seg, i] for i in range(5))
+        b2 = P[seg, 5]
         t = (d - dl) / s
         F = 0.5 * _erfc(-t / math.sqrt(2))
         f = np.exp(-0.5 * t * t) / math.sqrt(2 * math.pi)
-        res = val - (b0 + b1 * d + c0 * F)
+        kink = s * (t * F + f)
+        return val - (b0 + b1 * d + c0 * F + b2 * kink), t, F, f, c0, s, b2, kink
+
+    JtJ = np.zeros((ids.size, nf, nf))
+    for it in range(iterations):
+        res, t, F, f, c0, s, b2, kink = model(P)
         if it >= 3:  # Tukey's biweight on the segment's robust scale: specks, cable edges
             sc = _seg_scale(res, seg, K) * 4.685
             u = res / sc[seg]
             wts = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
-        J = np.column_stack([np.ones_like(d), d, F, -c0 * f / s, -c0 * f * t / s])
+        J = np.column_stack([np.ones_like(d), d, F, -c0 * f / s - b2 * F,
+                             -c0 * f * t / s + b2 * f, kink])
         Jw = J * wts[:, None]
         JtJ = segsum(Jw[:, :, None] * J[:, None, :])
         Jtr = segsum(Jw * res[:, None])
@@ -591,10 +613,7 @@ def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float
         P[ids] += step
         P[ids, 4] = np.clip(P[ids, 4], 0.25, half_band / 1.5)
     # standard error of delta from the final normal matrix
-    b0, b1, c0, dl, s = (P[seg, i] for i in range(5))
-    t = (d - dl) / s
-    F = 0.5 * _erfc(-t / math.sqrt(2))
-    res = val - (b0 + b1 * d + c0 * F)
+    res = model(P)[0]
     wsum = np.maximum(segsum(wts), 1.0)
     rms = np.sqrt(segsum(wts * res * res) / np.maximum(wsum - nf, 1.0))
     try:
@@ -728,7 +747,7 @@ def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4
     """Alternate edge profiles along the current ellipse and a geometric fit to their
     points; segments whose edge is not the rim's (a holder, a cable, a shadow's soft
     edge) are left out (:func:`_consistent`, then the fit's own outliers)."""
-    half_band = 5.0
+    half_band = 9.0
     for rnd in range(rounds):
         prof = _edge_profiles(gray, p, half_band)
         ok = _consistent(prof, min_contrast)
@@ -741,7 +760,7 @@ def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4
         moved = np.max(np.abs(_ellipse_frame(p_new, prof.xy[:, 0], prof.xy[:, 1])[0]
                               - _ellipse_frame(p, prof.xy[:, 0], prof.xy[:, 1])[0]))
         p = p_new
-        half_band = float(np.clip(3.0 * float(np.median(prof.width[use])) + 1.5, 3.5, 8.0))
+        half_band = float(np.clip(3.0 * float(np.median(prof.width[use])) + 5.0, 8.0, 12.0))
         if rnd >= 1 and moved < 2e-3:
             break
     return p, prof, use
@@ -749,13 +768,15 @@ def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4
 
 def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float | None = 800.0,
             *, min_contrast: float = 15.0, max_rms_px: float = 0.25,
-            min_coverage: float = 0.6) -> RimFit:
+            min_coverage: float = 0.6, max_eccentricity_std: float | None = None) -> RimFit:
     """Fit the turntable rim's outer edge; eccentricity and (with R, h) camera zenith.
 
     The whole rim (or most of it) must be in view: at the reference rig's 160 um/px a
     150 mm rim is larger than the frame, so calibrate with a wider view or a smaller
-    concentric disc. Raises VisionError when no elliptical rim is visible, or when less
-    than ``min_coverage`` of its circumference could be measured.
+    concentric disc. Raises VisionError when no elliptical rim is visible, when less
+    than ``min_coverage`` of its circumference could be measured, or when e's standard
+    uncertainty exceeds ``max_eccentricity_std`` (a third of the bound the caller needs:
+    at small e, low contrast and high noise one frame cannot support a tight bound).
     """
     gray = as_gray(image, "rim image")
     check_usable(gray, min_contrast, "rim image")
@@ -778,6 +799,10 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
     ang = (math.degrees(t) + 90.0) % 180.0 - 90.0
     e = math.sqrt(max(0.0, 1.0 - (b / a) ** 2))
     e_std = _eccentricity_std(a, b, cov)
+    if max_eccentricity_std is not None and not e_std <= max_eccentricity_std:
+        raise VisionError(f"rim image: e = {e:.4f} is uncertain by {e_std:.4f} (one standard "
+                          f"uncertainty), more than the {max_eccentricity_std:g} asked for; "
+                          f"average several frames, raise the rim's contrast or lower noise")
     zen = (camera_zenith_from_eccentricity(e, radius_mm, height_mm)
            if radius_mm and height_mm else math.nan)
     return RimFit(center_px=np.array([cx, cy]), axes_px=(a, b), angle_deg=ang, eccentricity=e,
