@@ -197,27 +197,24 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
         pts = pts[inner]
         if any(np.mean(np.abs(_sampson(kc, pts)) < 1.0) > 0.9 for kc in conics):
             continue  # the same ellipse at another level: no need to fit it
-        fit = _robust_ellipse(pts, min_cover=0.3)
-        if fit is None:
-            continue
-        k, keep = fit
-        try:
-            ctr, (a, b), ang = _conic_params(k)
-        except (VisionError, np.linalg.LinAlgError):
-            continue
-        if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
-            continue
-        par = np.array([ctr[0], ctr[1], a, b])
-        if any(np.max(np.abs(c[1][:4] - par)) < 1.0 for c in cands):
-            continue  # the same ellipse at another threshold
-        full = (pts[keep] + 0.5) * f - 0.5
-        cands.append((float(keep.sum()), np.array([*par, ang]), full))
-        conics.append(k)
+        for k, keep in _robust_ellipses(pts, min_cover=0.3):
+            try:
+                ctr, (a, b), ang = _conic_params(k)
+            except (VisionError, np.linalg.LinAlgError):
+                continue
+            if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
+                continue
+            par = np.array([ctr[0], ctr[1], a, b])
+            if any(np.max(np.abs(c[1][:4] - par)) < 1.0 for c in cands):
+                continue  # the same ellipse at another threshold
+            full = (pts[keep] + 0.5) * f - 0.5
+            cands.append((float(keep.sum()), np.array([*par, ang]), full))
+            conics.append(k)
     if not cands:
         raise VisionError("rim image: no elliptical rim found")
     cands.sort(key=lambda c: -c[0])
     scored = []
-    for _n, _par, full in cands[:10]:
+    for _n, _par, full in cands[:24]:
         try:  # each candidate moved onto the nearest strong step first (an arc's
             # ellipse may be a few px off elsewhere)
             k = _outer_crossings(gray, fit_ellipse(full), min_contrast)
@@ -315,12 +312,14 @@ def _coverage(k: np.ndarray, pts: np.ndarray) -> float:
     return float(np.unique(((ang + np.pi) / (2 * np.pi) * 36).astype(int) % 36).size / 36)
 
 
-def _robust_ellipse(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
-                    ) -> tuple[np.ndarray, np.ndarray] | None:
-    """An ellipse through much of ``pts`` (a contour): a fit to all of them, or, when
-    something merged with the rim at this threshold, to the best of eight arcs, refitted
-    on its inliers. None unless the inliers cover ``min_cover`` of the ellipse within
-    1 px rms."""
+def _robust_ellipses(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
+                     ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Ellipses through much of ``pts`` (a contour), most inliers first: a fit to all of
+    them, or, when something merged with the rim (a holder, a cable, a shadow's edge),
+    fits to each of eight arcs, refitted on their inliers; each must cover ``min_cover``
+    of its ellipse within 1 px rms. All are kept, not only the one with most inliers:
+    an ellipse hugging a cable and a small cap can have more than the rim's own arc,
+    and the image (edge support) decides between them."""
     n = len(pts)
     trials = [np.ones(n, bool)]
     if n >= 160:
@@ -329,7 +328,7 @@ def _robust_ellipse(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
             m = np.zeros(n, bool)
             m[(s0 + np.arange(arc)) % n] = True
             trials.append(m)
-    best = None
+    fits: list[tuple[np.ndarray, np.ndarray]] = []
     for keep in trials:
         fit = _refit(pts, keep, tol)
         if fit is None:
@@ -339,11 +338,10 @@ def _robust_ellipse(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
             continue
         if float(np.sqrt(np.mean(_sampson(k, pts[kp]) ** 2))) > 1.0:
             continue
-        if best is None or kp.sum() > best[1].sum():
-            best = (k, kp)
+        fits.append((k, kp))
         if kp.mean() > 0.9:
             break
-    return best
+    return sorted(fits, key=lambda f: -int(f[1].sum()))
 
 
 def _outer_crossings(gray: np.ndarray, k: np.ndarray, min_contrast: float,
@@ -766,6 +764,41 @@ def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4
     return p, prof, use
 
 
+def _quality(p: Ellipse, prof: _Profiles, use: np.ndarray) -> tuple[float, float]:
+    """The rms distance (px) of the arcs' points kept from the ellipse, and the fraction
+    of the arcs kept."""
+    xy = prof.xy[use]
+    r = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0]
+    return (float(np.sqrt(np.mean(r ** 2))) if r.size else math.inf), float(use.mean())
+
+
+def _consensus_start(prof: _Profiles, min_contrast: float, tol_px: float = 0.5,
+                     trials: int = 80) -> Ellipse | None:
+    """RANSAC over the arcs' points: ellipses through 6 of them drawn at random (seeded:
+    a frame always gives the same answer), the one most points lie within ``tol_px`` of,
+    refitted to those. None when no draw gives an ellipse."""
+    xy = prof.xy[_consistent(prof, min_contrast)]
+    if len(xy) < 12:
+        return None
+    rng = np.random.default_rng(0)
+    best, best_n = None, 0
+    for _ in range(trials):
+        try:
+            k = fit_ellipse(xy[rng.choice(len(xy), 6, replace=False)])
+            _conic_params(k)
+        except (VisionError, np.linalg.LinAlgError):
+            continue
+        n = int(np.sum(np.abs(_sampson(k, xy)) < tol_px))
+        if n > best_n:
+            best, best_n = k, n
+    if best is None or best_n < 12:
+        return None
+    try:
+        return _params_from_conic(fit_ellipse(xy[np.abs(_sampson(best, xy)) < tol_px]))
+    except (VisionError, np.linalg.LinAlgError):
+        return None
+
+
 def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float | None = 800.0,
             *, min_contrast: float = 15.0, max_rms_px: float = 0.25,
             min_coverage: float = 0.6, max_eccentricity_std: float | None = None) -> RimFit:
@@ -782,10 +815,21 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
     check_usable(gray, min_contrast, "rim image")
     k = _coarse_ellipse(gray, min_contrast)
     p, prof, use = _refine(gray, _params_from_conic(k), min_contrast)
+    rms, cover = _quality(p, prof, use)
+    if cover < min_coverage or rms > max_rms_px:
+        # a start pulled a few px off by a cable or the holder keeps their arcs: start
+        # again from the ellipse most of the measured arcs agree on
+        start = _consensus_start(prof, min_contrast)
+        if start is not None:
+            try:
+                p2, prof2, use2 = _refine(gray, start, min_contrast)
+            except VisionError:
+                pass
+            else:
+                rms2, cover2 = _quality(p2, prof2, use2)
+                if cover2 >= min_coverage and rms2 <= max_rms_px:
+                    p, prof, use, rms, cover = p2, prof2, use2, rms2, cover2
     xy = prof.xy[use]
-    r = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0]
-    rms = float(np.sqrt(np.mean(r ** 2))) if r.size else math.inf
-    cover = float(use.mean())
     if cover < min_coverage or rms > max_rms_px:
         # a cable loop or a half-hidden rim fits some ellipse: flag it, do not guess
         raise VisionError(f"rim image: the rim's edge was traced over only {100 * cover:.0f} % "
