@@ -28,6 +28,7 @@ them the homography that rectifies image points onto the turntable plane
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -38,6 +39,8 @@ from scipy.special import erfc
 
 from alignd.errors import VisionError
 from alignd.vision.edges import EdgePoints, area_crossings, as_gray, check_usable
+
+log = logging.getLogger(__name__)
 
 __all__ = ["PlaneRectifier", "RimFit", "camera_zenith_from_eccentricity",
            "eccentricity_from_zenith", "fit_ellipse", "fit_rim", "zenith_from_ellipse"]
@@ -827,6 +830,9 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
                 pass
             else:
                 rms2, cover2 = _quality(p2, prof2, use2)
+                log.debug("rim: first fit refused (%.0f %% of the rim, rms %.2f px); from "
+                          "the arcs' consensus: %.0f %%, rms %.2f px", 100 * cover, rms,
+                          100 * cover2, rms2)
                 if cover2 >= min_coverage and rms2 <= max_rms_px:
                     p, prof, use, rms, cover = p2, prof2, use2, rms2, cover2
     xy = prof.xy[use]
