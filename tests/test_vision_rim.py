@@ -196,10 +196,10 @@ def test_eccentricity_std_matches_the_scatter_over_noisy_frames() -> None:
 
 def test_fit_rim_recovers_from_a_start_pulled_onto_a_cable(
         monkeypatch: pytest.MonkeyPatch) -> None:
-    """A cable running along the rim 7 px outside it over a sixth of its circumference,
-    and a coarse ellipse pulled 3-4 px toward it (as a corpus scene's was): the arcs along
-    the cable agreed with that start, and the fit refused the frame (rms 0.8 px); the
-    ellipse most measured arcs agree on (RANSAC) is a start the fit recovers from."""
+    """A cable running along the rim just outside it over a sixth of its circumference
+    (inside the edge profiles' band), and a coarse ellipse pulled 3-4 px toward it: the
+    arcs along the cable are left out (another contrast, a poor step fit) and the fit
+    converges on the rim."""
     import cv2
 
     from alignd.vision import rim

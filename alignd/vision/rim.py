@@ -28,7 +28,6 @@ them the homography that rectifies image points onto the turntable plane
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -39,8 +38,6 @@ from scipy.special import erfc
 
 from alignd.errors import VisionError
 from alignd.vision.edges import EdgePoints, area_crossings, as_gray, check_usable
-
-log = logging.getLogger(__name__)
 
 __all__ = ["PlaneRectifier", "RimFit", "camera_zenith_from_eccentricity",
            "eccentricity_from_zenith", "fit_ellipse", "fit_rim", "zenith_from_ellipse"]
@@ -775,33 +772,6 @@ def _quality(p: Ellipse, prof: _Profiles, use: np.ndarray) -> tuple[float, float
     return (float(np.sqrt(np.mean(r ** 2))) if r.size else math.inf), float(use.mean())
 
 
-def _consensus_start(prof: _Profiles, min_contrast: float, tol_px: float = 0.5,
-                     trials: int = 80) -> Ellipse | None:
-    """RANSAC over the arcs' points: ellipses through 6 of them drawn at random (seeded:
-    a frame always gives the same answer), the one most points lie within ``tol_px`` of,
-    refitted to those. None when no draw gives an ellipse."""
-    xy = prof.xy[_consistent(prof, min_contrast)]
-    if len(xy) < 12:
-        return None
-    rng = np.random.default_rng(0)
-    best, best_n = None, 0
-    for _ in range(trials):
-        try:
-            k = fit_ellipse(xy[rng.choice(len(xy), 6, replace=False)])
-            _conic_params(k)
-        except (VisionError, np.linalg.LinAlgError):
-            continue
-        n = int(np.sum(np.abs(_sampson(k, xy)) < tol_px))
-        if n > best_n:
-            best, best_n = k, n
-    if best is None or best_n < 12:
-        return None
-    try:
-        return _params_from_conic(fit_ellipse(xy[np.abs(_sampson(best, xy)) < tol_px]))
-    except (VisionError, np.linalg.LinAlgError):
-        return None
-
-
 def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float | None = 800.0,
             *, min_contrast: float = 15.0, max_rms_px: float = 0.25,
             min_coverage: float = 0.6, max_eccentricity_std: float | None = None) -> RimFit:
@@ -819,22 +789,6 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
     k = _coarse_ellipse(gray, min_contrast)
     p, prof, use = _refine(gray, _params_from_conic(k), min_contrast)
     rms, cover = _quality(p, prof, use)
-    if cover < min_coverage or rms > max_rms_px:
-        # a start pulled a few px off by a cable or the holder keeps their arcs: start
-        # again from the ellipse most of the measured arcs agree on
-        start = _consensus_start(prof, min_contrast)
-        if start is not None:
-            try:
-                p2, prof2, use2 = _refine(gray, start, min_contrast)
-            except VisionError:
-                pass
-            else:
-                rms2, cover2 = _quality(p2, prof2, use2)
-                log.debug("rim: first fit refused (%.0f %% of the rim, rms %.2f px); from "
-                          "the arcs' consensus: %.0f %%, rms %.2f px", 100 * cover, rms,
-                          100 * cover2, rms2)
-                if cover2 >= min_coverage and rms2 <= max_rms_px:
-                    p, prof, use, rms, cover = p2, prof2, use2, rms2, cover2
     xy = prof.xy[use]
     if cover < min_coverage or rms > max_rms_px:
         # a cable loop or a half-hidden rim fits some ellipse: flag it, do not guess
