@@ -220,3 +220,26 @@ def test_fit_rim_recovers_from_a_start_pulled_onto_a_cable(
     f = fit_rim(np.clip(img, 0, 255).astype(np.uint8), None, None)
     assert f.center_px == pytest.approx((cx, cy), abs=0.05)
     assert f.axes_px == pytest.approx((a, b), abs=0.05)
+
+
+def test_fit_rim_with_a_disc_that_saturates_inside_the_band() -> None:
+    """A bright disc brightening inward that saturates from 7 px inside its edge (the
+    corpus' scene #212 of 400 did): inside the +-8-12 px band of the edge profiles every
+    arc held saturated pixels and was left out ("traced over only 57 %"); now only
+    clipping within 4 px of the edge leaves an arc out, farther clipped pixels just lose
+    their weight."""
+    import cv2
+
+    from drivers.sim.render import Conic, Raster, coverage
+    from drivers.sim.scenes import ellipse_conic
+    w, h, cx, cy, a, e = 1280, 720, 640.3, 360.7, 220.0, 0.05
+    b = a * math.sqrt(1 - e * e)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    depth = a - np.hypot((xx - cx), (yy - cy) * a / b)  # ~ px inside the edge
+    disc = 200.0 + 8.0 * np.clip(depth, 0, None)  # 255 from 7 px in
+    cov = coverage(Conic(ellipse_conic((cx, cy), a, b, 0.0)),
+                   Raster((w, h), float(w), (w / 2, h / 2), 0.0), (0, 0, w, h))
+    img = cv2.GaussianBlur((90.0 + (disc - 90.0) * cov).astype(np.float32), (0, 0), 1.0)
+    f = fit_rim(np.clip(np.rint(img), 0, 255).astype(np.uint8), None, None)
+    assert f.axes_px == pytest.approx((a, b), abs=0.02)
+    assert f.eccentricity == pytest.approx(e, abs=0.001)

@@ -558,10 +558,13 @@ def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float
     n_out = np.bincount(seg, weights=(d > 1.0).astype(float), minlength=K)
     usable = (counts >= max(0.7 * expect, 20)) & (n_in >= 0.3 * counts) & (
         n_out >= 0.3 * counts)
-    # a clipped (saturated or black) side flattens the step asymmetrically: leave it out
-    clipped = np.bincount(seg, weights=((val >= 254.5) | (val <= 0.5)).astype(float),
-                          minlength=K)
-    usable &= clipped <= 0.02 * counts
+    # a clipped (saturated or black) side flattens the step asymmetrically: an arc with
+    # clipped pixels within 4 px of the edge is left out; farther out (a saturated disc in
+    # the wide band) they only lose their weight
+    clip = (val >= 254.5) | (val <= 0.5)
+    near = np.abs(d) <= 4.0
+    usable &= np.bincount(seg, weights=(clip & near).astype(float), minlength=K) <= 0.02 * (
+        np.bincount(seg, weights=near.astype(float), minlength=K))
     ids = np.flatnonzero(present)
     st = starts[ids]
 
@@ -576,7 +579,8 @@ def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float
     P[:, 2] = np.bincount(seg, weights=np.where(d > 1.0, val, 0.0), minlength=K) / np.maximum(
         n_out, 1) - P[:, 0]
     P[:, 4] = 1.0
-    wts = np.ones_like(d)
+    free = (~clip).astype(float)
+    wts = free
     lam = 1e-3
     res = np.zeros_like(d)
 
@@ -595,7 +599,7 @@ def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float
         if it >= 3:  # Tukey's biweight on the segment's robust scale: specks, cable edges
             sc = _seg_scale(res, seg, K) * 4.685
             u = res / sc[seg]
-            wts = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+            wts = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0) * free
         J = np.column_stack([np.ones_like(d), d, F, -c0 * f / s - b2 * F,
                              -c0 * f * t / s + b2 * f, kink])
         Jw = J * wts[:, None]
