@@ -29,6 +29,7 @@ them the homography that rectifies image points onto the turntable plane
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -155,6 +156,7 @@ class RimFit:
     rms_px: float
     n_points: int
     conic: np.ndarray  # (A, B, C, D, E, F)
+    eccentricity_std: float = math.nan  # standard uncertainty of e (from the fit)
 
     def to_json(self) -> dict[str, object]:
         zen = self.camera_zenith_deg
@@ -162,14 +164,15 @@ class RimFit:
                             "axes_px": [float(v) for v in self.axes_px],
                             "angle_deg": self.angle_deg},
                 "eccentricity": self.eccentricity,
+                "eccentricity_std": (self.eccentricity_std
+                                     if math.isfinite(self.eccentricity_std) else None),
                 "camera_zenith_deg": zen if math.isfinite(zen) else None,
                 "rms_px": self.rms_px, "n_points": self.n_points}
 
 
 def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
-    """The rim at 1/4 scale, as a full-res conic: elliptical contours of either polarity
-    at a ladder of thresholds, with and without thin structures (cables) opened and
-    closed away, each checked against the image (:func:`_edge_support`); the best
+    """The rim at 1/4 scale, as a full-res conic: elliptical outlines (:func:`_contours`),
+    each checked against the image (:func:`_edge_support`); the best
     supported wins, the outermost of those about as well supported (a rim ring's outer
     edge, not its inner one)."""
     h, w = gray.shape
@@ -181,44 +184,37 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
         raise VisionError("rim image: too little contrast for a rim")
     u8 = np.clip((small - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
     sh, sw = u8.shape
-    ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     cands: list[tuple[float, np.ndarray, np.ndarray]] = []  # (points, params, full-res pts)
-    for thr in range(32, 240, 32):
-        for mask in (u8 < thr, u8 > thr):
-            m8 = mask.astype(np.uint8)
-            m_oc = cv2.morphologyEx(cv2.morphologyEx(m8, cv2.MORPH_OPEN, ker),
-                                    cv2.MORPH_CLOSE, ker)
-            for m in (m8, m_oc):
-                cnts, _ = cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
-                for cnt in cnts:
-                    if cnt.shape[0] < 40:
-                        continue
-                    pts = cnt[:, 0, :].astype(float)
-                    inner = ((pts[:, 0] > 1) & (pts[:, 0] < sw - 2) & (pts[:, 1] > 1)
-                             & (pts[:, 1] < sh - 2))
-                    if inner.mean() < 0.6 or inner.sum() < 40:
-                        continue
-                    pts = pts[inner]
-                    fit = _robust_ellipse(pts, min_cover=0.3)
-                    if fit is None:
-                        continue
-                    k, keep = fit
-                    try:
-                        ctr, (a, b), ang = _conic_params(k)
-                    except (VisionError, np.linalg.LinAlgError):
-                        continue
-                    if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
-                        continue
-                    par = np.array([ctr[0], ctr[1], a, b])
-                    if any(np.max(np.abs(c[1][:4] - par)) < 1.0 for c in cands):
-                        continue  # the same ellipse at another threshold
-                    full = (pts[keep] + 0.5) * f - 0.5
-                    cands.append((float(keep.sum()), np.array([*par, ang]), full))
+    conics: list[np.ndarray] = []  # the candidates' conics at 1/4 scale
+    for cnt in _contours(u8):
+        if cnt.shape[0] < 40:
+            continue
+        pts = cnt[:, 0, :].astype(float)
+        inner = ((pts[:, 0] > 1) & (pts[:, 0] < sw - 2) & (pts[:, 1] > 1)
+                 & (pts[:, 1] < sh - 2))
+        if inner.mean() < 0.6 or inner.sum() < 40:
+            continue
+        pts = pts[inner]
+        if any(np.mean(np.abs(_sampson(kc, pts)) < 1.0) > 0.9 for kc in conics):
+            continue  # the same ellipse at another level: no need to fit it
+        for k, keep in _robust_ellipses(pts, min_cover=0.3):
+            try:
+                ctr, (a, b), ang = _conic_params(k)
+            except (VisionError, np.linalg.LinAlgError):
+                continue
+            if b < 0.1 * min(sh, sw) or a > 2 * max(sh, sw):
+                continue
+            par = np.array([ctr[0], ctr[1], a, b])
+            if any(np.max(np.abs(c[1][:4] - par)) < 1.0 for c in cands):
+                continue  # the same ellipse at another threshold
+            full = (pts[keep] + 0.5) * f - 0.5
+            cands.append((float(keep.sum()), np.array([*par, ang]), full))
+            conics.append(k)
     if not cands:
         raise VisionError("rim image: no elliptical rim found")
     cands.sort(key=lambda c: -c[0])
     scored = []
-    for _n, _par, full in cands[:10]:
+    for _n, _par, full in cands[:24]:
         try:  # each candidate moved onto the nearest strong step first (an arc's
             # ellipse may be a few px off elsewhere)
             k = _outer_crossings(gray, fit_ellipse(full), min_contrast)
@@ -233,6 +229,23 @@ def _coarse_ellipse(gray: np.ndarray, min_contrast: float) -> np.ndarray:
                           f"runs along only {100 * top:.0f} % of it)")
     near = [(k, _conic_params(k)[1][0]) for sc, k in scored if sc >= top - 0.05]
     return max(near, key=lambda t: t[1])[0]
+
+
+def _contours(u8: np.ndarray) -> Iterator[np.ndarray]:
+    """Outlines that may hold the rim: the contours at a ladder of levels of either
+    polarity, with and without thin structures (cables) opened and closed away, then the
+    chains of edge pixels (Canny), which still follow the rim where a shadow or a floor
+    as bright as the disc breaks every level's region open."""
+    ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    for thr in range(32, 240, 32):
+        for mask in (u8 < thr, u8 > thr):
+            m8 = mask.astype(np.uint8)
+            m_oc = cv2.morphologyEx(cv2.morphologyEx(m8, cv2.MORPH_OPEN, ker),
+                                    cv2.MORPH_CLOSE, ker)
+            for m in (m8, m_oc):
+                yield from cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)[0]
+    edges = cv2.Canny(u8, 25, 60, L2gradient=True)
+    yield from cv2.findContours(edges, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)[0]
 
 
 def _edge_support(gray: np.ndarray, k: np.ndarray, min_contrast: float, n: int = 240
@@ -299,12 +312,14 @@ def _coverage(k: np.ndarray, pts: np.ndarray) -> float:
     return float(np.unique(((ang + np.pi) / (2 * np.pi) * 36).astype(int) % 36).size / 36)
 
 
-def _robust_ellipse(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
-                    ) -> tuple[np.ndarray, np.ndarray] | None:
-    """An ellipse through much of ``pts`` (a contour): a fit to all of them, or, when
-    something merged with the rim at this threshold, to the best of eight arcs, refitted
-    on its inliers. None unless the inliers cover ``min_cover`` of the ellipse within
-    1 px rms."""
+def _robust_ellipses(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
+                     ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Ellipses through much of ``pts`` (a contour), most inliers first: a fit to all of
+    them, or, when something merged with the rim (a holder, a cable, a shadow's edge),
+    fits to each of eight arcs, refitted on their inliers; each must cover ``min_cover``
+    of its ellipse within 1 px rms. All are kept, not only the one with most inliers:
+    an ellipse hugging a cable and a small cap can have more than the rim's own arc,
+    and the image (edge support) decides between them."""
     n = len(pts)
     trials = [np.ones(n, bool)]
     if n >= 160:
@@ -313,7 +328,7 @@ def _robust_ellipse(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
             m = np.zeros(n, bool)
             m[(s0 + np.arange(arc)) % n] = True
             trials.append(m)
-    best = None
+    fits: list[tuple[np.ndarray, np.ndarray]] = []
     for keep in trials:
         fit = _refit(pts, keep, tol)
         if fit is None:
@@ -323,11 +338,10 @@ def _robust_ellipse(pts: np.ndarray, tol: float = 1.0, min_cover: float = 0.5
             continue
         if float(np.sqrt(np.mean(_sampson(k, pts[kp]) ** 2))) > 1.0:
             continue
-        if best is None or kp.sum() > best[1].sum():
-            best = (k, kp)
+        fits.append((k, kp))
         if kp.mean() > 0.9:
             break
-    return best
+    return sorted(fits, key=lambda f: -int(f[1].sum()))
 
 
 def _outer_crossings(gray: np.ndarray, k: np.ndarray, min_contrast: float,
@@ -350,32 +364,9 @@ def _outer_crossings(gray: np.ndarray, k: np.ndarray, min_contrast: float,
     my = (py[:, None] + s[None] * ny[:, None]).astype(np.float32)
     prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                      borderValue=float("nan"))
-    pts = []
-    for i in range(n):
-        v = prof[i]
-        if not np.all(np.isfinite(v)):
-            continue
-        bg = float(np.median(v[:6]))
-        d = np.abs(v - bg)
-        strong = np.flatnonzero(d > max(min_contrast, 0.35 * d.max()))
-        if strong.size == 0 or d.max() < min_contrast:
-            continue
-        j = strong[0]
-        # the step's level: a few samples past the first strong one
-        lvl = float(np.median(v[j:j + 6]))
-        half = abs(lvl - bg) / 2
-        jj = np.flatnonzero(d[:j + 1] >= half)
-        if jj.size == 0:
-            continue
-        j1 = int(jj[0])
-        if j1 == 0:
-            continue
-        f = (half - d[j1 - 1]) / max(d[j1] - d[j1 - 1], 1e-9)
-        t = s[j1 - 1] + f * (s[j1] - s[j1 - 1])
-        pts.append((px[i] + t * nx[i], py[i] + t * ny[i]))
-    if len(pts) < 20:
+    xy = _first_half_crossings(prof, s, px, py, nx, ny, min_contrast)
+    if len(xy) < 20:
         raise VisionError("rim image: the rim's outer edge could not be traced")
-    xy = np.asarray(pts)
     k2 = fit_ellipse(xy)
     for _ in range(3):
         r = _sampson(k2, xy)
@@ -385,6 +376,37 @@ def _outer_crossings(gray: np.ndarray, k: np.ndarray, min_contrast: float,
         xy = xy[keep]
         k2 = fit_ellipse(xy)
     return k2
+
+
+def _first_half_crossings(prof: np.ndarray, s: np.ndarray, px: np.ndarray, py: np.ndarray,
+                          nx: np.ndarray, ny: np.ndarray, min_contrast: float) -> np.ndarray:
+    """For each profile (a row, sampled at offsets ``s`` from the background inward): the
+    background is the median of its first 6 samples, the first strong step is the first
+    sample off it by more than ``min_contrast`` and 35 % of the row's largest step, the
+    step's level the median of 6 samples from there; returns the points where the row
+    first crosses half that step (linear interpolation), rows without one left out."""
+    fin = np.all(np.isfinite(prof), axis=1)
+    prof, px, py, nx, ny = prof[fin], px[fin], py[fin], nx[fin], ny[fin]
+    m = prof.shape[1]
+    bg = np.median(prof[:, :6], axis=1)
+    d = np.abs(prof - bg[:, None])
+    dmax = d.max(axis=1) if m else np.zeros(len(prof))
+    strong = d > np.maximum(min_contrast, 0.35 * dmax)[:, None]
+    has = strong.any(axis=1) & (dmax >= min_contrast)
+    j = np.argmax(strong, axis=1)
+    win = j[:, None] + np.arange(6)[None]
+    lvl = np.nanmedian(np.where(win < m, np.take_along_axis(prof, np.minimum(win, m - 1),
+                                                            axis=1), np.nan), axis=1)
+    half = np.abs(lvl - bg) / 2
+    ge = (d >= half[:, None]) & (np.arange(m)[None] <= j[:, None])
+    j1 = np.argmax(ge, axis=1)
+    has &= ge.any(axis=1) & (j1 > 0)
+    r = np.flatnonzero(has)
+    j1 = j1[r]
+    d0, d1 = d[r, j1 - 1], d[r, j1]
+    f = (half[r] - d0) / np.maximum(d1 - d0, 1e-9)
+    t = s[j1 - 1] + f * (s[j1] - s[j1 - 1])
+    return np.column_stack([px[r] + t * nx[r], py[r] + t * ny[r]])
 
 
 def _rim_points(gray: np.ndarray, k: np.ndarray, half_width: int, min_contrast: float,
@@ -496,14 +518,19 @@ class _Profiles:
 
 def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float = 12.0,
                    iterations: int = 10) -> _Profiles:
-    """Fit I = b0 + b1 d + c0 Phi((d - delta) / s) to the pixels within
-    ``half_band`` px of the ellipse, segment by segment (arcs of ~seg_px): delta is the
-    edge's offset along the normal, d the pixel's signed distance to the ellipse (exact
-    pixel positions, no interpolation). The levels and a slope across the edge absorb
-    lighting gradients, vignetting and either polarity (one slope for both sides: a slope
-    of its own on each side correlates with delta and costs 2.5x in its precision, for a
-    bias that, from a linear light gradient, moves the centre only, not the axes; a
-    texture's slope on one side only is a local error, smaller than that noise)."""
+    """Fit I = b0 + b1 d + c0 Phi(t) + b2 s (t Phi(t) + phi(t)), t = (d - delta) / s, to
+    the pixels within ``half_band`` px of the ellipse, segment by segment (arcs of
+    ~seg_px): delta is the edge's offset along the normal, d the pixel's signed distance
+    to the ellipse (exact pixel positions, no interpolation), s the edge's width. The
+    levels and the slopes absorb lighting gradients, vignetting, shading and either
+    polarity: b1 is the slope inside, b1 + b2 outside, the last term being the blur of
+    b2 max(d - delta, 0), a kink at the edge blurred as the edge is. The floor and the
+    disc slope differently under any light (their levels differ) and a textured floor
+    slopes on its own: one slope for both sides moved each arc's edge by ~0.1 px per
+    DN/px of the difference, times the contrast's inverse, in a pattern that varies round
+    the rim (e off by 0.003-0.009 in the corpus' worst frames). The second slope costs
+    precision, the less the wider the band (+-8 px and more: delta's standard error
+    x1.33 against one slope at +-5 px; e's median standard error in the corpus +17 %)."""
     h, w = gray.shape
     cx, cy, a, b, _t = p
     if not (np.all(np.isfinite(p)) and min(a, b) > 5.0):
@@ -531,38 +558,50 @@ def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float
     n_out = np.bincount(seg, weights=(d > 1.0).astype(float), minlength=K)
     usable = (counts >= max(0.7 * expect, 20)) & (n_in >= 0.3 * counts) & (
         n_out >= 0.3 * counts)
-    # a clipped (saturated or black) side flattens the step asymmetrically: leave it out
-    clipped = np.bincount(seg, weights=((val >= 254.5) | (val <= 0.5)).astype(float),
-                          minlength=K)
-    usable &= clipped <= 0.02 * counts
+    # a clipped (saturated or black) side flattens the step asymmetrically: an arc with
+    # clipped pixels within 4 px of the edge is left out; farther out (a saturated disc in
+    # the wide band) they only lose their weight
+    clip = (val >= 254.5) | (val <= 0.5)
+    near = np.abs(d) <= 4.0
+    usable &= np.bincount(seg, weights=(clip & near).astype(float), minlength=K) <= 0.02 * (
+        np.bincount(seg, weights=near.astype(float), minlength=K))
     ids = np.flatnonzero(present)
     st = starts[ids]
 
     def segsum(v: np.ndarray) -> np.ndarray:  # sums over each present segment
         return np.add.reduceat(v, st, axis=0)
 
+    nf = 6
     # start: each side's mean level, flat, no offset, s = 1 px
-    P = np.zeros((K, 5))
-    nf = 5
+    P = np.zeros((K, nf))
     P[:, 0] = np.bincount(seg, weights=np.where(d < -1.0, val, 0.0), minlength=K) / np.maximum(
         n_in, 1)
     P[:, 2] = np.bincount(seg, weights=np.where(d > 1.0, val, 0.0), minlength=K) / np.maximum(
         n_out, 1) - P[:, 0]
     P[:, 4] = 1.0
-    wts = np.ones_like(d)
+    free = (~clip).astype(float)
+    wts = free
     lam = 1e-3
     res = np.zeros_like(d)
-    for it in range(iterations):
+
+    def model(P: np.ndarray) -> tuple[np.ndarray, ...]:
         b0, b1, c0, dl, s = (P[seg, i] for i in range(5))
+        b2 = P[seg, 5]
         t = (d - dl) / s
         F = 0.5 * _erfc(-t / math.sqrt(2))
         f = np.exp(-0.5 * t * t) / math.sqrt(2 * math.pi)
-        res = val - (b0 + b1 * d + c0 * F)
+        kink = s * (t * F + f)
+        return val - (b0 + b1 * d + c0 * F + b2 * kink), t, F, f, c0, s, b2, kink
+
+    JtJ = np.zeros((ids.size, nf, nf))
+    for it in range(iterations):
+        res, t, F, f, c0, s, b2, kink = model(P)
         if it >= 3:  # Tukey's biweight on the segment's robust scale: specks, cable edges
             sc = _seg_scale(res, seg, K) * 4.685
             u = res / sc[seg]
-            wts = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
-        J = np.column_stack([np.ones_like(d), d, F, -c0 * f / s, -c0 * f * t / s])
+            wts = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0) * free
+        J = np.column_stack([np.ones_like(d), d, F, -c0 * f / s - b2 * F,
+                             -c0 * f * t / s + b2 * f, kink])
         Jw = J * wts[:, None]
         JtJ = segsum(Jw[:, :, None] * J[:, None, :])
         Jtr = segsum(Jw * res[:, None])
@@ -576,10 +615,7 @@ def _edge_profiles(gray: np.ndarray, p: Ellipse, half_band: float, seg_px: float
         P[ids] += step
         P[ids, 4] = np.clip(P[ids, 4], 0.25, half_band / 1.5)
     # standard error of delta from the final normal matrix
-    b0, b1, c0, dl, s = (P[seg, i] for i in range(5))
-    t = (d - dl) / s
-    F = 0.5 * _erfc(-t / math.sqrt(2))
-    res = val - (b0 + b1 * d + c0 * F)
+    res = model(P)[0]
     wsum = np.maximum(segsum(wts), 1.0)
     rms = np.sqrt(segsum(wts * res * res) / np.maximum(wsum - nf, 1.0))
     try:
@@ -635,7 +671,7 @@ def _geometric_fit(p: Ellipse, xy: np.ndarray, sigma: np.ndarray, iterations: in
     (Gauss-Newton from a close start), with Tukey's biweight on the normalised residuals;
     returns the parameters and the inliers (within 3.5 robust sigma)."""
     p = np.array(p, float)
-    sig = np.maximum(sigma, 0.5 * float(np.median(sigma)) + 0.002)
+    sig = _point_sigma(sigma)
     z = np.zeros(len(xy))
     sc = 1.0
     for _ in range(iterations):
@@ -656,6 +692,32 @@ def _geometric_fit(p: Ellipse, xy: np.ndarray, sigma: np.ndarray, iterations: in
             break
     z = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0] / sig
     return p, np.abs(z) <= 3.5 * sc
+
+
+def _point_sigma(sigma: np.ndarray) -> np.ndarray:
+    """Per-point standard errors floored (a noise-free arc must not outweigh the rest)."""
+    return np.maximum(sigma, 0.5 * float(np.median(sigma)) + 0.002)
+
+
+def _ellipse_covariance(p: Ellipse, xy: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Covariance of (cx, cy, a, b, theta) from the points the fit kept: the normal
+    matrix of their weighted distances, scaled by their actual scatter (so texture or
+    compression that the per-arc standard errors miss still counts)."""
+    sig = _point_sigma(sigma)
+    z = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0] / sig
+    J = _distance_jacobian(p, xy[:, 0], xy[:, 1]) / sig[:, None]
+    s2 = float(np.sum(z * z)) / max(len(z) - 5, 1)
+    return np.linalg.inv(J.T @ J + 1e-12 * np.eye(5)) * s2
+
+
+def _eccentricity_std(a: float, b: float, cov_ab: np.ndarray) -> float:
+    """Standard uncertainty of e = sqrt(1 - (b/a)^2) (a >= b) from the axes' covariance,
+    through e^2 (linear in the axes' ratio), so it stays finite at e = 0."""
+    g = np.array([2 * b * b / a ** 3, -2 * b / (a * a)])  # d(e^2)/d(a, b)
+    var_e2 = float(g @ cov_ab @ g)
+    e = math.sqrt(max(0.0, 1.0 - (b / a) ** 2))
+    return math.sqrt(max(var_e2, 0.0)) / (2 * max(e, math.sqrt(math.sqrt(max(var_e2, 0.0)))
+                                                   + 1e-12))
 
 
 def _consistent(prof: _Profiles, min_contrast: float) -> np.ndarray:
@@ -687,7 +749,7 @@ def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4
     """Alternate edge profiles along the current ellipse and a geometric fit to their
     points; segments whose edge is not the rim's (a holder, a cable, a shadow's soft
     edge) are left out (:func:`_consistent`, then the fit's own outliers)."""
-    half_band = 5.0
+    half_band = 9.0
     for rnd in range(rounds):
         prof = _edge_profiles(gray, p, half_band)
         ok = _consistent(prof, min_contrast)
@@ -700,45 +762,61 @@ def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4
         moved = np.max(np.abs(_ellipse_frame(p_new, prof.xy[:, 0], prof.xy[:, 1])[0]
                               - _ellipse_frame(p, prof.xy[:, 0], prof.xy[:, 1])[0]))
         p = p_new
-        half_band = float(np.clip(3.0 * float(np.median(prof.width[use])) + 1.5, 3.5, 8.0))
+        half_band = float(np.clip(3.0 * float(np.median(prof.width[use])) + 5.0, 8.0, 12.0))
         if rnd >= 1 and moved < 2e-3:
             break
     return p, prof, use
 
 
+def _quality(p: Ellipse, prof: _Profiles, use: np.ndarray) -> tuple[float, float]:
+    """The rms distance (px) of the arcs' points kept from the ellipse, and the fraction
+    of the arcs kept."""
+    xy = prof.xy[use]
+    r = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0]
+    return (float(np.sqrt(np.mean(r ** 2))) if r.size else math.inf), float(use.mean())
+
+
 def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float | None = 800.0,
             *, min_contrast: float = 15.0, max_rms_px: float = 0.25,
-            min_coverage: float = 0.6) -> RimFit:
+            min_coverage: float = 0.6, max_eccentricity_std: float | None = None) -> RimFit:
     """Fit the turntable rim's outer edge; eccentricity and (with R, h) camera zenith.
 
     The whole rim (or most of it) must be in view: at the reference rig's 160 um/px a
     150 mm rim is larger than the frame, so calibrate with a wider view or a smaller
-    concentric disc. Raises VisionError when no elliptical rim is visible, or when less
-    than ``min_coverage`` of its circumference could be measured.
+    concentric disc. Raises VisionError when no elliptical rim is visible, when less
+    than ``min_coverage`` of its circumference could be measured, or when e's standard
+    uncertainty exceeds ``max_eccentricity_std`` (a third of the bound the caller needs:
+    at small e, low contrast and high noise one frame cannot support a tight bound).
     """
     gray = as_gray(image, "rim image")
     check_usable(gray, min_contrast, "rim image")
     k = _coarse_ellipse(gray, min_contrast)
     p, prof, use = _refine(gray, _params_from_conic(k), min_contrast)
+    rms, cover = _quality(p, prof, use)
     xy = prof.xy[use]
-    r = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0]
-    rms = float(np.sqrt(np.mean(r ** 2))) if r.size else math.inf
-    cover = float(use.mean())
     if cover < min_coverage or rms > max_rms_px:
         # a cable loop or a half-hidden rim fits some ellipse: flag it, do not guess
         raise VisionError(f"rim image: the rim's edge was traced over only {100 * cover:.0f} % "
                           f"of its circumference (rms {rms:.2f} px); need "
                           f"{100 * min_coverage:.0f} % within {max_rms_px:g} px")
+    cov = _ellipse_covariance(p, xy, prof.sigma[use])[2:4, 2:4]
     cx, cy, a, b, t = (float(v) for v in p)
     if b > a:
         a, b, t = b, a, t + math.pi / 2
+        cov = cov[::-1, ::-1]
     ang = (math.degrees(t) + 90.0) % 180.0 - 90.0
     e = math.sqrt(max(0.0, 1.0 - (b / a) ** 2))
+    e_std = _eccentricity_std(a, b, cov)
+    if max_eccentricity_std is not None and not e_std <= max_eccentricity_std:
+        raise VisionError(f"rim image: e = {e:.4f} is uncertain by {e_std:.4f} (one standard "
+                          f"uncertainty), more than the {max_eccentricity_std:g} asked for; "
+                          f"average several frames, raise the rim's contrast or lower noise")
     zen = (camera_zenith_from_eccentricity(e, radius_mm, height_mm)
            if radius_mm and height_mm else math.nan)
     return RimFit(center_px=np.array([cx, cy]), axes_px=(a, b), angle_deg=ang, eccentricity=e,
                   camera_zenith_deg=zen, rms_px=rms, n_points=int(use.sum()),
-                  conic=_conic_from_params(np.array([cx, cy, a, b, math.radians(ang)])))
+                  conic=_conic_from_params(np.array([cx, cy, a, b, math.radians(ang)])),
+                  eccentricity_std=e_std)
 
 
 # ---- perspective correction --------------------------------------------------------------
