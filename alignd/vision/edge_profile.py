@@ -171,7 +171,7 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     yc = (rows - y_mid).astype(np.float64)
     use = np.ones(rows.size, bool)
     if clip_levels is not None:  # start from the rows without a clipped pixel
-        unclipped = ((P > clip_levels[0] + 0.5) & (P < clip_levels[1] - 0.5)).all(axis=1)
+        unclipped = ((clip_levels[0] + 0.5 < P) & (clip_levels[1] - 0.5 > P)).all(axis=1)
         if unclipped.sum() >= min_rows:
             use = unclipped
     x = np.array([a0, b0, blur0])
