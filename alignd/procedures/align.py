@@ -615,11 +615,9 @@ class _Run:
         the mean of ``tools.tilt`` and, from 2 frames on, its standard error."""
         assert self.tools is not None
         frames: list[Frame] = []
-        after = side.clock.now()
         for _ in range(n):
             check_abort(self.abort)
-            frames.append(grab_fresh(side, after))
-            after = frames[-1].timestamp + 1e-6
+            frames.append(grab_fresh(side, side.clock.now()))
         if self.tools.tilt_frames is not None:
             return self.tools.tilt_frames(frames)
         assert self.tools.tilt is not None
