@@ -55,6 +55,7 @@ class SideEdge:
     line: Line
     spread: Spread | None = None  # the blur model of the profile fit (None: area method)
     half_width: int | None = None  # of the profile fit's windows (px)
+    blur_px: float | None = None  # the profile fit's blur width
 
 
 @dataclass(frozen=True)
@@ -244,7 +245,7 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
     b = -float(e.line.n[1] / e.line.n[0])
     fits = [fit_vertical_edge(gray, float(e.line.minor_at(y_mid)), b, y_mid,
                               np.arange(r0, r1 + 1), half_width=hw, x_limits=(x0, x1),
-                              spread=spread) for spread in spreads]
+                              spread=spread, blur0=e.blur_px or 1.0) for spread in spreads]
     # the spread model that describes the edge better: residuals in DN over the same pixels
     fit = min((f for f in fits if f is not None), key=lambda f: f.rms_dn, default=None)
     # it refines the edge found, never moves to another one: within 1.5 px of it over
@@ -257,7 +258,7 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
     ln = fit.line()
     ln = replace(ln, rms_px=e.line.rms_px)
     return replace(e, angle_deg=fit.angle_deg, sigma_deg=fit.sigma_deg, x_mid_px=fit.a, line=ln,
-                   spread=fit.spread, half_width=hw)
+                   spread=fit.spread, half_width=hw, blur_px=fit.blur_px)
 
 
 def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
