@@ -69,7 +69,9 @@ def test_pre_check_frames_mean_and_uncertainty() -> None:
     assert av.u_deg >= u_fit - 1e-12
     assert av.u_deg >= float(np.std(t, ddof=1)) / math.sqrt(5) - 1e-12
     assert abs(av.tilt_deg - sc.tilt_deg) <= 3 * av.u_deg
-    assert av.to_json()["frames"] == 5
+    js = av.to_json()
+    assert js["frames"] == 5 and js["tilt_deg"] == av.tilt_deg and js["sigma_deg"] == av.u_deg
+    assert js["sample_angle_deg"] - js["pole_angle_deg"] == pytest.approx(av.tilt_deg)
     with pytest.raises(VisionError, match="no frame"):
         measure_tilt_frames([])
 

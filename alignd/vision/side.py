@@ -452,6 +452,8 @@ class TiltAverage:
     def to_json(self) -> dict[str, object]:
         first = self.frames[0].to_json()
         return {**first, "tilt_deg": self.tilt_deg, "sigma_deg": self.u_deg,
+                "sample_angle_deg": float(np.mean([m.sample_angle_deg for m in self.frames])),
+                "pole_angle_deg": float(np.mean([m.pole_angle_deg for m in self.frames])),
                 "frames": self.n, "frame_tilts_deg": [m.tilt_deg for m in self.frames]}
 
 
