@@ -140,3 +140,29 @@ def test_a_sample_region_holding_both_faces_averages_them() -> None:
     assert len(near.sample_edges) == 1 and len(both.sample_edges) == 2
     assert both.sigma_deg < near.sigma_deg
     assert both.sample_angle_deg == pytest.approx(auto.sample_angle_deg, abs=2e-4)
+
+
+def test_profile_fit_replaces_an_area_method_line_that_is_off() -> None:
+    """On a JPEG corpus frame the area method put a pole edge 0.87 px off at mid-height
+    and 0.15 deg off in angle (1.8 px at an end); the profile fit found it within 0.003
+    deg, but a 1.5 px guard kept the area method's line: the tilt was 0.023 deg off. The
+    guard now only keeps the fit from moving to another edge (3 px, half the 6 px that
+    separate two edges found)."""
+    from dataclasses import replace
+
+    from alignd.vision.edge_profile import ProfileFit
+    from alignd.vision.edges import as_gray
+    from alignd.vision.side import _profiled
+    sc = random_side_scene(np.random.default_rng(5), "full-height sample")
+    m = measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
+    e = m.pole_edges[0]
+    y_mid = (e.rows[0] + e.rows[1]) / 2
+    b = -float(e.line.n[1] / e.line.n[0]) - math.tan(math.radians(0.15))
+    off = ProfileFit(a=float(e.line.minor_at(y_mid)) + 0.87, b=b, y_mid=y_mid,
+                     cov_ab=np.eye(2) * 1e-8, blur_px=1.0, rms_dn=1.0,
+                     rows=np.arange(e.rows[0], e.rows[1] + 1), contrast=e.contrast).line()
+    bad = replace(e, line=off, angle_deg=math.degrees(math.atan(-b)), spread=None,
+                  half_width=None, blur_px=None)
+    got = _profiled(as_gray(sc.image), bad, [*m.pole_edges, *m.sample_edges], sc.pole_roi_px)
+    assert got is not None and got.spread is not None
+    assert got.angle_deg == pytest.approx(sc.pole_angle_deg, abs=0.003)

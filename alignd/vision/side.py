@@ -248,12 +248,13 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
                               spread=spread, blur0=e.blur_px or 1.0) for spread in spreads]
     # the spread model that describes the edge better: residuals in DN over the same pixels
     fit = min((f for f in fits if f is not None), key=lambda f: f.rms_dn, default=None)
-    # it refines the edge found, never moves to another one: within 1.5 px of it over
-    # the rows (an angle bound instead rejected good fits where the area method was off:
-    # 0.1 deg off on a JPEG frame, where the profile fit was within 0.003 deg)
+    # it refines the edge found, never moves to another one: within 3 px of it over the
+    # rows, half the 6 px that separate two edges found (an angle bound of 0.1 deg, or
+    # 1.5 px, rejected good fits where the area method was off: 0.1-0.15 deg off on JPEG
+    # frames, 1.8 px at an end, where the profile fit was within 0.003 deg)
     ends = np.array([r0, y_mid, r1], float)
     if fit is None or np.max(np.abs(fit.a + fit.b * (ends - fit.y_mid)
-                                    - e.line.minor_at(ends))) > 1.5:
+                                    - e.line.minor_at(ends))) > 3.0:
         return None if strict else e
     ln = fit.line()
     ln = replace(ln, rms_px=e.line.rms_px)
