@@ -24,8 +24,10 @@ import numpy as np
 
 from alignd.errors import VisionError
 
-__all__ = ["EdgePoints", "Line", "area_crossings", "as_gray", "check_usable", "coarse_edge",
-           "edge_points", "fit_line", "intersect", "sensor_full_scale"]
+__all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
+           "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
+           "coarse_edges_many", "edge_points",
+           "edge_points_many", "fit_line", "intersect", "segment_median", "sensor_full_scale"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -117,13 +119,15 @@ class EdgePoints:
 
 
 def _moving_mean(v: np.ndarray, k: int) -> np.ndarray:
-    k = min(k, (v.size - 1) // 2)  # np.convolve's "same" is max(len) long
-    if v.size == 0 or k <= 0:
+    """Mean over +-k along the last axis, truncated at the ends (k at most (n - 1) / 2)."""
+    n = v.shape[-1]
+    k = min(k, (n - 1) // 2)
+    if n == 0 or k <= 0:
         return v
-    ker = np.ones(2 * k + 1)
-    num = np.convolve(v, ker, mode="same")
-    den = np.convolve(np.ones_like(v), ker, mode="same")
-    return num / den
+    csum = np.concatenate([np.zeros((*v.shape[:-1], 1)), np.cumsum(v, axis=-1)], axis=-1)
+    i = np.arange(n)
+    lo, hi = np.maximum(i - k, 0), np.minimum(i + k, n - 1)
+    return (csum[..., hi + 1] - csum[..., lo]) / (hi - lo + 1)
 
 
 def _median(v: np.ndarray) -> float:
@@ -135,15 +139,67 @@ def _median(v: np.ndarray) -> float:
     return float(np.partition(v, k)[k])
 
 
-def _adaptive_slope(v: np.ndarray, k: int) -> np.ndarray:
-    """Per-column slope: the edge's robust mean, replaced by the local (moving) mean only
-    where that differs from it by more than 4 of its own standard errors."""
+def adaptive_slope(v: np.ndarray, k: int) -> np.ndarray:
+    """Per-column slope: the edge's robust mean, replaced by the local (moving) mean over
+    +-k columns only where that differs from it by more than 4 of its own standard errors
+    (one value per edge, whose noise would otherwise tilt the line, except where a
+    shadow's penumbra crosses the edge)."""
     g = _robust_mean(v)
     if v.size < 3 or k <= 0:
         return np.full(v.shape, g)
     loc = _moving_mean(v, k)
     sig = float(_median(np.abs(v - _median(v)))) * 1.4826 / math.sqrt(2 * k + 1)
     return np.where(np.abs(loc - g) > 4 * sig + 1e-9, loc, g)
+
+
+def segment_median(v: np.ndarray, seg: np.ndarray, n_seg: int, *, upper: bool = True
+                   ) -> np.ndarray:
+    """The median of each segment of ``v``: for an even count the upper of the middle two
+    (as :func:`_median`) or, ``upper`` False, their mean (as np.median); ``seg``
+    (non-decreasing, 0 .. n_seg - 1) names each value's segment. NaN for an empty
+    segment."""
+    counts = np.bincount(seg, minlength=n_seg)
+    if v.size == 0:
+        return np.full(n_seg, np.nan)
+    starts = np.cumsum(counts) - counts
+    span = float(np.max(v) - np.min(v)) + 1.0
+    vs = v[np.argsort(v + seg * span, kind="stable")]  # by segment, then by value
+    hi = np.minimum(starts + counts // 2, v.size - 1)
+    out = vs[hi].astype(float)
+    if not upper:
+        lo = np.maximum(starts + (counts - 1) // 2, 0)
+        out = 0.5 * (out + vs[np.minimum(lo, v.size - 1)])
+    out[counts == 0] = np.nan
+    return out
+
+
+def adaptive_slopes(v: np.ndarray, seg: np.ndarray, n_seg: int, k: int) -> np.ndarray:
+    """:func:`adaptive_slope` of several edges in one batch (a few array operations in all,
+    not per edge); ``seg`` (non-decreasing, 0 .. n_seg - 1) names each column's edge."""
+    v = np.asarray(v, float)
+    if v.size == 0:
+        return v.copy()
+    counts = np.bincount(seg, minlength=n_seg)
+    starts = np.cumsum(counts) - counts
+    med = segment_median(v, seg, n_seg)
+    dev = np.abs(v - med[seg])
+    mad = np.nan_to_num(segment_median(dev, seg, n_seg)) * 1.4826
+    keep = dev <= 4.0 * (mad + 1e-9)[seg]
+    nk = np.bincount(seg, weights=keep, minlength=n_seg)
+    sk = np.bincount(seg, weights=np.where(keep, v, 0.0), minlength=n_seg)
+    g = np.where(nk > 0, sk / np.maximum(nk, 1.0), med)[seg]
+    if k <= 0:
+        return g
+    # the moving mean over +-k columns, truncated at each edge's ends (k <= (n - 1) / 2)
+    n = counts[seg]
+    ke = np.minimum(k, (n - 1) // 2)
+    st = starts[seg]
+    pos = np.arange(v.size) - st
+    lo, hi = np.maximum(pos - ke, 0), np.minimum(pos + ke, n - 1)
+    csum = np.concatenate(([0.0], np.cumsum(v)))
+    loc = (csum[st + hi + 1] - csum[st + lo]) / (hi - lo + 1)
+    sig = (mad / math.sqrt(2 * k + 1))[seg]
+    return np.where((n >= 3) & (np.abs(loc - g) > 4.0 * sig + 1e-9), loc, g)
 
 
 def _robust_mean(v: np.ndarray) -> float:
@@ -156,21 +212,16 @@ def _robust_mean(v: np.ndarray) -> float:
     return float(v[keep].mean()) if keep.any() else med
 
 
-def edge_points(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, half_width: int = 5,
-                margin_px: float = 8.0, tails: int = 3, smooth: int = 3,
-                min_contrast: float = 10.0, vertical: bool | None = None) -> EdgePoints:
-    """Measure the edge near the segment p0-p1 in every column (or row) it crosses.
-
-    Windows of 2 * half_width + 1 px are centred on the predicted crossing; the segment's
-    ends are trimmed by ``margin_px`` (corners, neighbouring edges). Crossings with a level
-    difference under ``min_contrast`` or outside the window's middle are dropped.
-    """
+def _edge_columns(shape: tuple[int, int], p0: np.ndarray, p1: np.ndarray, margin_px: float,
+                  vertical: bool | None) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The columns (rows) ``t`` a segment crosses, ends trimmed by ``margin_px``, and its
+    predicted minor coordinate ``c`` in each."""
     p0 = np.asarray(p0, float)
     p1 = np.asarray(p1, float)
     dx, dy = p1 - p0
     if vertical is None:
-        vertical = abs(dy) > abs(dx)
-    h, w = gray.shape
+        vertical = bool(abs(dy) > abs(dx))
+    h, w = shape
     if vertical:  # rows: major = y, minor = x
         ma0, ma1, mi0, mi1, limit_major = p0[1], p1[1], p0[0], p1[0], h
     else:
@@ -181,12 +232,33 @@ def edge_points(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, half_width:
     trim = margin_px * abs(ma1 - ma0) / max(length, 1e-9)
     t = np.arange(math.ceil(ma0 + trim), math.floor(ma1 - trim) + 1)
     t = t[(t >= 0) & (t < limit_major)]
-    empty = EdgePoints(np.empty((0, 2)), np.empty(0), vertical)
     if t.size < 3 or ma1 - ma0 < 1e-9:
-        return empty
-    c = mi0 + (t - ma0) * (mi1 - mi0) / (ma1 - ma0)
-    return area_crossings(gray, t, c, vertical, half_width=half_width, tails=tails,
-                          smooth=smooth, min_contrast=min_contrast)
+        return np.empty(0, int), np.empty(0), vertical
+    return t, mi0 + (t - ma0) * (mi1 - mi0) / (ma1 - ma0), vertical
+
+
+def edge_points(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, half_width: int = 5,
+                margin_px: float = 8.0, tails: int = 3, smooth: int = 3,
+                min_contrast: float = 10.0, vertical: bool | None = None) -> EdgePoints:
+    """Measure the edge near the segment p0-p1 in every column (or row) it crosses.
+
+    Windows of 2 * half_width + 1 px are centred on the predicted crossing; the segment's
+    ends are trimmed by ``margin_px`` (corners, neighbouring edges). Crossings with a level
+    difference under ``min_contrast`` or outside the window's middle are dropped.
+    """
+    return area_crossings_many(gray, [_edge_columns(gray.shape, p0, p1, margin_px, vertical)],
+                               half_width=half_width, tails=tails, smooth=smooth,
+                               min_contrast=min_contrast)[0]
+
+
+def edge_points_many(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndarray]], *,
+                     half_width: int = 5, margin_px: float = 8.0, tails: int = 3,
+                     smooth: int = 3, min_contrast: float = 10.0) -> list[EdgePoints]:
+    """:func:`edge_points` of several segments (p0, p1) in one batch: the same crossings,
+    at the cost of one edge's array calls instead of one per edge."""
+    return area_crossings_many(
+        gray, [_edge_columns(gray.shape, p0, p1, margin_px, None) for p0, p1 in segments],
+        half_width=half_width, tails=tails, smooth=smooth, min_contrast=min_contrast)
 
 
 def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: bool, *,
@@ -194,48 +266,83 @@ def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: boo
                    min_contrast: float = 10.0) -> EdgePoints:
     """Area-method crossings of an edge (straight or gently curved) predicted at minor
     coordinate ``c`` in each column (row) ``t``; t must run along the edge."""
+    return area_crossings_many(gray, [(t, c, vertical)], half_width=half_width, tails=tails,
+                               smooth=smooth, min_contrast=min_contrast)[0]
+
+
+def _segment_moving_mean(v: np.ndarray, seg: np.ndarray, counts: np.ndarray,
+                         starts: np.ndarray, k: int) -> np.ndarray:
+    """Mean over +-k within each segment, truncated at its ends (k <= (n - 1) / 2)."""
+    if v.size == 0 or k <= 0:
+        return v
+    n = counts[seg]
+    ke = np.minimum(k, (n - 1) // 2)
+    st = starts[seg]
+    pos = np.arange(v.size) - st
+    lo, hi = np.maximum(pos - ke, 0), np.minimum(pos + ke, n - 1)
+    csum = np.concatenate(([0.0], np.cumsum(v)))
+    return (csum[st + hi + 1] - csum[st + lo]) / (hi - lo + 1)
+
+
+def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarray, bool]],
+                        *, half_width: int = 5, tails: int = 3, smooth: int = 3,
+                        min_contrast: float = 10.0) -> list[EdgePoints]:
+    """:func:`area_crossings` of several edges (t, c, vertical) in one batch: every step is
+    one array operation over all the columns of all the edges."""
     h, w = gray.shape
-    limit_minor = w if vertical else h
-    empty = EdgePoints(np.empty((0, 2)), np.empty(0), vertical)
-    t = np.asarray(t).astype(int)
-    c = np.asarray(c, float)
-    start = np.round(c).astype(int) - half_width
     m = 2 * half_width + 1
-    ok = (start >= 0) & (start + m <= limit_minor)
-    t, c, start = t[ok], c[ok], start[ok]
-    if t.size < 3:
-        return empty
+    out = [EdgePoints(np.empty((0, 2)), np.empty(0), v) for _t, _c, v in edges]
+    parts = []
+    for k, (t, c, vertical) in enumerate(edges):
+        t = np.asarray(t).astype(np.intp)
+        c = np.asarray(c, float)
+        start = np.round(c).astype(np.intp) - half_width
+        ok = (start >= 0) & (start + m <= (w if vertical else h))
+        if np.count_nonzero(ok) < 3:
+            continue
+        t, start = t[ok], start[ok]
+        parts.append((np.full(t.size, k), t, start, t * w if vertical else t,
+                      np.full(t.size, 1 if vertical else w, np.intp)))
+    if not parts:
+        return out
+    seg, t, start, base, stride = (np.concatenate(p) for p in zip(*parts, strict=True))
+    ne = len(edges)
+    counts = np.bincount(seg, minlength=ne)
+    starts = np.cumsum(counts) - counts
     j = np.arange(m)
-    idx_minor = start[:, None] + j[None, :]
-    P = (gray[t[:, None], idx_minor] if vertical else gray[idx_minor, t[:, None]]).astype(
+    flat = np.ascontiguousarray(gray).ravel()
+    P = flat.take(base[:, None] + (start[:, None] + j[None, :]) * stride[:, None]).astype(
         np.float64)
     S = P[:, :tails].mean(axis=1)
     E = P[:, -tails:].mean(axis=1)
-    S_s = _moving_mean(S, smooth)
-    E_s = _moving_mean(E, smooth)
+    S_s = _segment_moving_mean(S, seg, counts, starts, smooth)
+    E_s = _segment_moving_mean(E, seg, counts, starts, smooth)
     js = (tails - 1) / 2
     je = m - 1 - (tails - 1) / 2
+    n = seg.size
     if tails >= 2:
         # the illumination slope across each side: one value per edge (its noise would
         # otherwise tilt the line), except where a shadow's penumbra crosses the edge
         wts = np.arange(tails) - js
         wts = wts / float(wts @ wts)
-        slope_s = _adaptive_slope(P[:, :tails] @ wts, smooth)[:, None]
-        slope_e = _adaptive_slope(P[:, -tails:] @ wts, smooth)[:, None]
+        both = adaptive_slopes(np.concatenate([P[:, :tails] @ wts, P[:, -tails:] @ wts]),
+                               np.concatenate([seg, seg + ne]), 2 * ne, smooth)
+        slope_s, slope_e = both[:n, None], both[n:, None]
     else:
-        slope_s = slope_e = np.zeros((P.shape[0], 1))
+        slope_s = slope_e = np.zeros((n, 1))
     Sj = S_s[:, None] + slope_s * (j[None, :] - js)
     Ej = E_s[:, None] + slope_e * (j[None, :] - je)
     contrast = E_s - S_s
     good = np.abs(contrast) >= min_contrast
-    # a column that clips a corner or a neighbouring edge shows a partial step
+    # a column that clips a corner or a neighbouring edge shows a partial step, judged
+    # against the contrast of the neighbouring columns (+-15), so that a shadow or
+    # vignetting that changes the contrast along the edge is followed
     raw = E - S
-    if good.any():
-        # against the contrast of the neighbouring columns (+-15), so that a shadow or
-        # vignetting that changes the contrast along the edge is followed
-        med = float(_median(raw[good]))
-        ref = _moving_mean(np.where(good, raw, med), 15)
-        good &= np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
+    # (an edge without a good column has none to lose: 0 for its median, not NaN, which
+    # the running sums would carry into the next edges)
+    med = np.nan_to_num(segment_median(raw[good], seg[good], ne))
+    ref = _segment_moving_mean(np.where(good, raw, med[seg]), seg, counts, starts, 15)
+    good &= np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
     denom = Sj - Ej
     denom = np.where(good[:, None] & (np.abs(denom) > 1e-6), denom, 1.0)
     frac = (P - Ej) / denom
@@ -246,110 +353,131 @@ def area_crossings(gray: np.ndarray, t: np.ndarray, c: np.ndarray, vertical: boo
     lo = np.minimum(Sj, Ej) - 0.35 * np.abs(contrast)[:, None]
     hi = np.maximum(Sj, Ej) + 0.35 * np.abs(contrast)[:, None]
     good &= np.all((lo < P) & (hi > P), axis=1)
-    t, pos, contrast = t[good], pos[good], contrast[good]
-    xy = np.column_stack([pos, t]) if vertical else np.column_stack([t, pos])
-    return EdgePoints(xy.astype(float), contrast, vertical)
+    for k in np.unique(seg[good]):
+        sel = good & (seg == k)
+        tk, pk = t[sel].astype(float), pos[sel]
+        vertical = edges[k][2]
+        xy = np.column_stack([pk, tk]) if vertical else np.column_stack([tk, pk])
+        out[k] = EdgePoints(xy, contrast[sel], vertical)
+    return out
 
 
 def coarse_edge(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, search_px: int = 10,
                 margin_px: float = 12.0, min_step: float = 10.0) -> Line | None:
     """Locate an edge within +-search_px of the segment p0-p1 to about a pixel: the
     strongest step of each column (row), then a robust line. Seeds :func:`edge_points`."""
-    p0 = np.asarray(p0, float)
-    p1 = np.asarray(p1, float)
-    dx, dy = p1 - p0
-    vertical = abs(dy) > abs(dx)
+    return coarse_edges_many(gray, [(p0, p1)], search_px=search_px, margin_px=margin_px,
+                             min_step=min_step)[0]
+
+
+def coarse_edges_many(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndarray]], *,
+                      search_px: int = 10, margin_px: float = 12.0, min_step: float = 10.0
+                      ) -> list[Line | None]:
+    """:func:`coarse_edge` of several segments (p0, p1) in one batch (one gather and one
+    step search for all their columns; a line fit per edge)."""
     h, w = gray.shape
-    if vertical:
-        ma0, ma1, mi0, mi1, lim_ma, lim_mi = p0[1], p1[1], p0[0], p1[0], h, w
-    else:
-        ma0, ma1, mi0, mi1, lim_ma, lim_mi = p0[0], p1[0], p0[1], p1[1], w, h
-    if ma1 < ma0:
-        ma0, ma1, mi0, mi1 = ma1, ma0, mi1, mi0
-    if ma1 - ma0 < 1e-9:
-        return None
-    trim = margin_px * abs(ma1 - ma0) / max(math.hypot(dx, dy), 1e-9)
-    t = np.arange(math.ceil(ma0 + trim), math.floor(ma1 - trim) + 1)
-    t = t[(t >= 0) & (t < lim_ma)]
-    c = mi0 + (t - ma0) * (mi1 - mi0) / (ma1 - ma0)
-    start = np.round(c).astype(int) - search_px
     m = 2 * search_px + 1
-    ok = (start >= 0) & (start + m <= lim_mi)
-    t, start = t[ok], start[ok]
-    if t.size < 8:
-        return None
-    idx = start[:, None] + np.arange(m)[None, :]
-    P = (gray[t[:, None], idx] if vertical else gray[idx, t[:, None]]).astype(np.float32)
+    parts = []
+    vert = []
+    for k, (p0, p1) in enumerate(segments):
+        t, c, vertical = _edge_columns(gray.shape, p0, p1, margin_px, None)
+        vert.append(vertical)
+        start = np.round(c).astype(np.intp) - search_px
+        ok = (start >= 0) & (start + m <= (w if vertical else h))
+        if np.count_nonzero(ok) < 8:
+            continue
+        t, start = t[ok].astype(np.intp), start[ok]
+        parts.append((np.full(t.size, k), t, start, t * w if vertical else t,
+                      np.full(t.size, 1 if vertical else w, np.intp)))
+    out: list[Line | None] = [None] * len(segments)
+    if not parts:
+        return out
+    seg, t, start, base, stride = (np.concatenate(p) for p in zip(*parts, strict=True))
+    flat = np.ascontiguousarray(gray).ravel()
+    P = flat.take(base[:, None] + (start[:, None] + np.arange(m)[None, :]) * stride[:, None]
+                  ).astype(np.float32)
     P = (P[:, :-2] + P[:, 1:-1] + P[:, 2:]) / 3  # a little smoothing against noise
     D = np.diff(P, axis=1)
-    # one sign for the whole edge: the dominant one
-    sign = 1.0 if _median(D.max(axis=1)) >= _median(-D.min(axis=1)) else -1.0
-    k = np.argmax(sign * D, axis=1)
-    step = sign * D[np.arange(D.shape[0]), k]
-    keep = step * 3 >= min_step
-    pos = start + k + 1.5
-    xy = np.column_stack([pos, t]) if vertical else np.column_stack([t, pos])
-    pts = EdgePoints(xy[keep].astype(float), step[keep], vertical)
-    return fit_line(pts, reject_sigma=3.0, min_points=8, min_sigma=0.7)
+    # one sign per edge: the dominant one
+    ne = len(segments)
+    up = segment_median(D.max(axis=1), seg, ne) >= segment_median(-D.min(axis=1), seg, ne)
+    sign = np.where(up, 1.0, -1.0).astype(np.float32)[seg]
+    SD = sign[:, None] * D
+    k = np.argmax(SD, axis=1)
+    step = SD[np.arange(SD.shape[0]), k]
+    pos = (start + k + 1.5).astype(float)
+    tf = t.astype(float)
+    for e in np.unique(seg):
+        sel = (seg == e) & (step * 3 >= min_step)
+        xy = np.column_stack([pos[sel], tf[sel]]) if vert[e] else np.column_stack(
+            [tf[sel], pos[sel]])
+        out[e] = fit_line(EdgePoints(xy, step[sel], vert[e]), reject_sigma=3.0, min_points=8,
+                          min_sigma=0.7)
+    return out
 
 
 def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
              iterations: int = 4, min_sigma: float = 0.01) -> Line | None:
     """Least-squares line minor = a + b * major with iterative robust rejection."""
-    if pts.xy.shape[0] < min_points:
+    n_pts = pts.xy.shape[0]
+    if n_pts < min_points:
         return None
-    if pts.vertical:
-        major, minor = pts.xy[:, 1], pts.xy[:, 0]
-    else:
-        major, minor = pts.xy[:, 0], pts.xy[:, 1]
+    k = 1 if pts.vertical else 0
+    major, minor = pts.xy[:, k], pts.xy[:, 1 - k]
     m0 = float(major.mean())
-    use = np.ones(major.size, bool)
-    coef = np.zeros(2)
-    res = np.zeros_like(minor)
     u = major - m0
+    uu, vv = u, minor
+    use: np.ndarray | None = None  # None: every point
+    a0 = b = 0.0
+    res = minor
     for _ in range(iterations):
-        nu = int(use.sum())
+        nu = uu.size
         if nu < min_points:
             return None
-        uu, vv = u[use], minor[use]
-        um, vm = uu.mean(), vv.mean()
+        um, vm = float(uu.mean()), float(vv.mean())
         du = uu - um
         b = float(du @ (vv - vm)) / max(float(du @ du), 1e-12)
-        coef = np.array([vm - b * um, b])
-        res = minor - (coef[0] + coef[1] * u)
-        ru = res[use]
-        mad = float(_median(np.abs(ru - _median(ru)))) * 1.4826
-        sig = max(mad, min_sigma)
-        new = np.abs(res) < reject_sigma * sig
-        if np.array_equal(new, use):
+        a0 = vm - b * um
+        res = minor - (a0 + b * u)
+        ru = res if use is None else res[use]
+        mad = _median(np.abs(ru - _median(ru))) * 1.4826
+        new = np.abs(res) < reject_sigma * max(mad, min_sigma)
+        same = bool(new.all()) if use is None else np.array_equal(new, use)
+        if same:
             break
         use = new
-    if use.sum() < min_points:
+        uu, vv = u[use], minor[use]
+    n_used = n_pts if use is None else int(np.count_nonzero(use))
+    if n_used < min_points:
         return None
-    r = res[use]
-    dof = max(int(use.sum()) - 2, 1)
-    s2 = float(r @ r) / dof
-    A = np.column_stack([np.ones(use.sum()), major[use] - m0])
-    cov_c = s2 * np.linalg.inv(A.T @ A)
+    r = res if use is None else res[use]
+    uf = u if use is None else u[use]
+    s2 = float(r @ r) / max(n_used - 2, 1)
+    # covariance of (a, b) of the centred fit, by the 2 x 2 normal matrix's inverse
+    s_u, s_uu = float(uf.sum()), float(uf @ uf)
+    det = n_used * s_uu - s_u * s_u
+    if abs(det) < 1e-12:
+        return None
+    cov_c = (s2 / det) * np.array([[s_uu, -s_u], [-s_u, float(n_used)]])
     # back to a + b * major (un-centred)
     T = np.array([[1.0, -m0], [0.0, 1.0]])
     cov_ab = T @ cov_c @ T.T
-    a = coef[0] - coef[1] * m0
-    b = coef[1]
+    a = a0 - b * m0
     # minor - b * major - a = 0
     # vertical: x - b y = a; else: y - b x = a
-    nv = np.array([1.0, -b]) if pts.vertical else np.array([-b, 1.0])
-    norm = float(np.hypot(*nv))
-    return Line(n=nv / norm, d=float(a / norm), rms_px=float(math.sqrt(s2)),
-                n_points=int(major.size), n_used=int(use.sum()), cov_ab=cov_ab,
-                vertical=pts.vertical, major_span=(float(major.min()), float(major.max())),
+    norm = math.hypot(1.0, b)
+    nv = np.array([1.0, -b]) / norm if pts.vertical else np.array([-b, 1.0]) / norm
+    return Line(n=nv, d=a / norm, rms_px=math.sqrt(s2), n_points=n_pts, n_used=n_used,
+                cov_ab=cov_ab, vertical=pts.vertical,
+                major_span=(float(major.min()), float(major.max())),
                 contrast=float(_median(pts.contrast)))
 
 
 def intersect(l1: Line, l2: Line) -> np.ndarray:
     """Intersection point of two lines (NaN when parallel)."""
-    A = np.array([l1.n, l2.n])
-    det = float(np.linalg.det(A))
+    a, b = float(l1.n[0]), float(l1.n[1])
+    c, d = float(l2.n[0]), float(l2.n[1])
+    det = a * d - b * c
     if abs(det) < 1e-9:
         return np.array([np.nan, np.nan])
-    return np.linalg.solve(A, np.array([l1.d, l2.d]))
+    return np.array([(d * l1.d - b * l2.d) / det, (a * l2.d - c * l1.d) / det])

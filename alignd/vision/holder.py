@@ -39,8 +39,9 @@ from alignd.vision.edges import (
     Line,
     as_gray,
     check_usable,
-    coarse_edge,
+    coarse_edges_many,
     edge_points,
+    edge_points_many,
     fit_line,
     intersect,
 )
@@ -98,9 +99,13 @@ def order_corners(corners: np.ndarray, hint: np.ndarray | None = None) -> np.nda
     if hint is not None:
         h = np.asarray(hint, float)
         if h.shape == (4, 2) and np.all(np.isfinite(h)):
-            costs = [np.sum(np.linalg.norm(np.roll(c, -k, axis=0) - h, axis=1)) for k in range(4)]
-            c = np.roll(c, -int(np.argmin(costs)), axis=0)
+            rolled = c[_ROLLS]  # (4 shifts, 4, 2): every cyclic order at once
+            costs = np.sqrt(((rolled - h[None]) ** 2).sum(axis=2)).sum(axis=1)
+            c = rolled[int(np.argmin(costs))]
     return c
+
+
+_ROLLS = (np.arange(4)[None, :] + np.arange(4)[:, None]) % 4  # row k: np.roll(c, -k)
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> float:
@@ -388,13 +393,9 @@ def _fit_sides(gray: np.ndarray, corners: np.ndarray, half_width: int, margin: f
                ) -> list[tuple[Line | None, EdgePoints]]:
     """Each side's area-method crossings (frame pixels) and the line through them (in the
     ideal image when there is a lens)."""
-    res = []
-    for i in range(4):
-        p0, p1 = corners[i], corners[(i + 1) % 4]
-        pts = edge_points(gray, p0, p1, half_width=half_width, margin_px=margin,
-                          min_contrast=min_contrast)
-        res.append((fit_line(_ideal(pts, lens)), pts))
-    return res
+    found = edge_points_many(gray, [(corners[i], corners[(i + 1) % 4]) for i in range(4)],
+                             half_width=half_width, margin_px=margin, min_contrast=min_contrast)
+    return [(fit_line(_ideal(pts, lens)), pts) for pts in found]
 
 
 def _ideal(pts: EdgePoints, lens: Lens | None) -> EdgePoints:
@@ -427,7 +428,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     length, principal point, k1) straightens distorted sides (corners stay in frame
     pixels; the angle and the size are those of the undistorted image). ``refine``:
     "profile" refines the accepted sides by the profile fit of
-    :mod:`alignd.vision.profile_fit` (about half the corner noise, about 10 ms more a
+    :mod:`alignd.vision.profile_fit` (about half the corner noise, about 5 ms more a
     frame), "area" keeps the area method's crossings (the faster, noisier). Raises
     VisionError when the image is unusable or holds no candidate; returns ``ok`` False,
     with the reason, when no candidate passes the checks.
@@ -439,12 +440,13 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     hint_arr = None if hint is None else np.asarray(hint, float)
     reasons: list[str] = []
     if hint_arr is not None and hint_arr.shape == (4, 2) and np.all(np.isfinite(hint_arr)):
-        # tracking: the previous corners seed the +-10 px side search directly; if the
-        # holder is not there any more, fall back to a full search
+        # tracking: the previous corners seed the fine windows (or, when the sides moved,
+        # the +-10 px side search); if the holder is not there any more, fall back to a
+        # full search
         try:
             det = _refine(gray, order_corners(hint_arr), polarity, expected_size_px, hint_arr,
                           min_contrast, max_rms_px, passes, lens, size_tolerance,
-                          refine == "profile")
+                          refine == "profile", seeded=True)
             if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px)
                                                 - order_corners(hint_arr), axis=1)) > _RESEED_PX:
                 # the holder moved far within the +-10 px side search (a wide sweep's
@@ -506,13 +508,52 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
 def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
             expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
             min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None = None,
-            size_tolerance: float = 0.15, profile: bool = True) -> HolderDetection:
-    """Fine fit from approximate corners (a coarse box or the previous frame's corners)."""
+            size_tolerance: float = 0.15, profile: bool = True, seeded: bool = False
+            ) -> HolderDetection:
+    """Fine fit from approximate corners (a coarse box or, ``seeded``, the previous frame's
+    corners)."""
+    # (a distorted side is curved in the frame: windows along the straight segment between
+    # its corners would miss its middle, so with a lens the coarse search always runs)
+    straight = lens is None or lens.k1 == 0.0
+    sides = _fit_sides(gray, corners, _HALF_WIDTH, 10.0, min_contrast, lens) \
+        if seeded and straight and passes <= 1 else None
+    if sides is None or not _seed_holds(sides, corners, max_rms_px, lens):
+        corners, sides = _locate(gray, corners, min_contrast, passes, lens)
+    return _finish(gray, corners, sides, polarity, expected_size_px, hint, min_contrast,
+                   max_rms_px, lens, size_tolerance, profile)
+
+
+def _seed_holds(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
+                max_rms_px: float, lens: Lens | None) -> bool:
+    """Tracking: whether the fine windows centred on the previous frame's sides caught
+    every side whole (nearly every column used, a good fit) and the sides moved by less
+    than a pixel: then the +-10 px coarse search that re-centres the windows would give
+    the same windows and is not needed."""
+    lines = [ln for ln, _pts in sides if ln is not None]
+    if len(lines) != 4:
+        return False
+    for i, ln in enumerate(lines):
+        span = float(np.linalg.norm(corners[(i + 1) % 4] - corners[i]))
+        crossed = max(span - 20.0, 1.0) * max(abs(ln.n[0]), abs(ln.n[1]))  # columns (rows)
+        if ln.rms_px > max_rms_px or ln.n_used < 0.8 * crossed:
+            return False
+    new = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
+    if not np.all(np.isfinite(new)):
+        return False
+    if lens is not None:
+        new = lens.distort(new)
+    return float(np.max(np.linalg.norm(new - corners, axis=1))) <= 1.0
+
+
+def _locate(gray: np.ndarray, corners: np.ndarray, min_contrast: float, passes: int,
+            lens: Lens | None) -> tuple[np.ndarray, list[tuple[Line | None, EdgePoints]]]:
+    """The sides' area-method crossings and lines, from approximate corners: the corners
+    the fine windows were centred on, and the sides."""
     # pass 0: strongest step near each side of the approximate box (+-10 px), good to a few
     # tenths of a pixel; then the area method (exact wherever the edge sits in its window,
     # so one pass suffices; more passes re-centre the windows on the previous lines)
-    coarse = [coarse_edge(gray, corners[i], corners[(i + 1) % 4], search_px=10,
-                          min_step=min_contrast / 2) for i in range(4)]
+    coarse = coarse_edges_many(gray, [(corners[i], corners[(i + 1) % 4]) for i in range(4)],
+                               search_px=10, min_step=min_contrast / 2)
     if any(c is None for c in coarse):
         raise VisionError("top image: the holder's sides could not be located "
                           f"(side(s) {[i for i, c in enumerate(coarse) if c is None]})")
@@ -537,6 +578,15 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
         sides = _fit_sides(gray, corners, _HALF_WIDTH, 10.0, min_contrast, lens)
         lines = [s[0] for s in sides]
         lines_ideal = True
+    return corners, sides
+
+
+def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
+            polarity: str | None, expected_size_px: tuple[float, float] | None,
+            hint: np.ndarray | None, min_contrast: float, max_rms_px: float,
+            lens: Lens | None, size_tolerance: float, profile: bool) -> HolderDetection:
+    """The detection from the sides' area-method fits: checked, widened for soft edges,
+    refined by the profile fit where that agrees."""
     pol = _polarity(gray, corners)
     det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
                     size_tolerance)
@@ -570,18 +620,17 @@ def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
     """"dark" when the quadrilateral's middle is darker than just outside its sides."""
     h, w = gray.shape
     ctr = c.mean(axis=0)
-
-    def level(p: np.ndarray) -> float:
-        x = int(np.clip(round(p[0]), 2, w - 3))
-        y = int(np.clip(round(p[1]), 2, h - 3))
-        return float(np.median(gray[y - 2:y + 3, x - 2:x + 3]))
-
-    outside = []
-    for i in range(4):
-        mid = (c[i] + c[(i + 1) % 4]) / 2
-        v = mid - ctr
-        outside.append(level(mid + 12.0 * v / (np.linalg.norm(v) or 1.0)))
-    return "dark" if level(ctr) < float(np.median(outside)) else "light"
+    mids = (c + np.roll(c, -1, axis=0)) / 2
+    v = mids - ctr
+    v /= np.maximum(np.linalg.norm(v, axis=1), 1e-9)[:, None]
+    at = np.vstack([ctr[None], mids + 12.0 * v])  # the middle, then just outside each side
+    x = np.clip(np.rint(at[:, 0]), 2, w - 3).astype(np.intp)
+    y = np.clip(np.rint(at[:, 1]), 2, h - 3).astype(np.intp)
+    d = np.arange(-2, 3)
+    patches = gray[(y[:, None, None] + d[None, :, None]), (x[:, None, None] + d[None, None, :])]
+    level = np.partition(patches.reshape(5, 25).astype(np.float32), 12, axis=1)[:, 12]
+    out = np.sort(level[1:])
+    return "dark" if level[0] < 0.5 * float(out[1] + out[2]) else "light"
 
 
 def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, pol: str,

@@ -26,11 +26,12 @@ a tenth of a pixel), so a few Gauss-Newton iterations suffice.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtr
 
-from alignd.vision.edges import EdgePoints, _adaptive_slope
+from alignd.vision.edges import EdgePoints, adaptive_slopes, segment_median
 
 __all__ = ["fit_crossings", "step_response"]
 
@@ -51,53 +52,65 @@ def step_response(d: np.ndarray, s: float | np.ndarray, wa: float | np.ndarray,
     """
     wb = np.maximum(wb, 0.02)
     p, q = (wa + wb) / 2, (wa - wb) / 2
-    shape = np.broadcast_shapes(np.shape(d), np.shape(s), np.shape(wa), np.shape(wb))
-    S, S1, S2 = np.zeros(shape), np.zeros(shape), np.zeros(shape)
-    for off, sign in ((p, 1.0), (q, -1.0), (-q, -1.0), (-p, 1.0)):
-        t = d + off
-        z = t / s
-        Phi = ndtr(z)
-        phi = np.exp(-0.5 * z * z) * _INV_SQRT_2PI
-        tsphi = t * s * phi
-        if sign > 0:
-            S += (t * t + s * s) * Phi + tsphi
-            S1 += t * Phi + s * phi
-            S2 += Phi
-        else:
-            S -= (t * t + s * s) * Phi + tsphi
-            S1 -= t * Phi + s * phi
-            S2 -= Phi
+    # the four corners of the trapezoid at once (a leading axis), signs +, -, -, +
+    t = np.stack(np.broadcast_arrays(d + p, d + q, d - q, d - p))
+    sc = np.broadcast_to(s, t.shape[1:])
+    z = t / sc
+    Phi = ndtr(z)
+    sphi = np.exp(-0.5 * z * z) * (sc * _INV_SQRT_2PI)
+    G = (t * t + sc * sc) * Phi + t * sphi
+    G1 = t * Phi + sphi
+
+    def second_difference(a: np.ndarray) -> np.ndarray:
+        return (a[0] + a[3]) - (a[1] + a[2])
+
+    S, S1, S2 = second_difference(G), second_difference(G1), second_difference(Phi)
     inv = 1.0 / (wa * wb)
     return S * (0.5 * inv), S1 * inv, S2 * inv
 
 
-def _windows(gray: np.ndarray, pts: EdgePoints, half_width: int
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel windows (N, 2 hw + 1) centred on each crossing: the windows, their centres,
-    the crossings relative to the centres and the indices of the crossings kept."""
-    h, w = gray.shape
-    if pts.vertical:
-        t, c = pts.xy[:, 1], pts.xy[:, 0]
-        limit = w
-    else:
-        t, c = pts.xy[:, 0], pts.xy[:, 1]
-        limit = h
-    ti = np.rint(t).astype(int)
-    centre = np.rint(c).astype(int)
-    ok = (centre - half_width >= 0) & (centre + half_width < limit)
-    ti, centre = ti[ok], centre[ok]
-    idx = centre[:, None] + np.arange(-half_width, half_width + 1)[None, :]
-    P = (gray[ti[:, None], idx] if pts.vertical else gray[idx, ti[:, None]]).astype(np.float64)
-    return P, centre.astype(float), c[ok] - centre, np.flatnonzero(ok)
+@dataclass(frozen=True)
+class _Rows:
+    """Every crossing of every edge as one row: its edge (non-decreasing), its column
+    (row) ``t``, the area method's crossing ``c`` and how to read its pixel window from
+    the flattened image (index ``base + minor * stride``)."""
+
+    edge: np.ndarray
+    t: np.ndarray
+    c: np.ndarray
+    contrast: np.ndarray
+    base: np.ndarray
+    stride: np.ndarray
+    limit: np.ndarray  # the minor coordinate's size (image width or height)
+
+    def take(self, sel: np.ndarray) -> _Rows:
+        return _Rows(self.edge[sel], self.t[sel], self.c[sel], self.contrast[sel],
+                     self.base[sel], self.stride[sel], self.limit[sel])
 
 
-def _tail_slopes(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _windows(flat: np.ndarray, rows: _Rows, half_width: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel windows (N, 2 hw + 1) centred on each row's crossing, one gather for all
+    edges: the windows, their centres and the mask of the rows whose window fits."""
+    centre = np.rint(rows.c).astype(np.intp)
+    ok = (centre >= half_width) & (centre + half_width < rows.limit)
+    centre = centre[ok]
+    j = np.arange(-half_width, half_width + 1)
+    idx = rows.base[ok, None] + (centre[:, None] + j[None, :]) * rows.stride[ok, None]
+    return flat.take(idx).astype(np.float64), centre.astype(float), ok
+
+
+def _tail_slopes(P: np.ndarray, edge: np.ndarray, n_edges: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Illumination slope on either side of each window, one value per edge except where
     it changes along the edge by more than its noise (a penumbra crossing the edge)."""
     wts = np.arange(_TAILS) - (_TAILS - 1) / 2
     wts = wts / float(wts @ wts)
-    return (_adaptive_slope(P[:, :_TAILS] @ wts, 3),
-            _adaptive_slope(P[:, -_TAILS:] @ wts, 3))
+    n = edge.size
+    # both sides in one batch: the far sides as edges n_edges .. 2 n_edges - 1
+    both = adaptive_slopes(np.concatenate([P[:, :_TAILS] @ wts, P[:, -_TAILS:] @ wts]),
+                           np.concatenate([edge, edge + n_edges]), 2 * n_edges, 3)
+    return both[:n], both[n:]
 
 
 def _start(P: np.ndarray, x: np.ndarray, b1: np.ndarray, b2: np.ndarray
@@ -110,26 +123,25 @@ def _fit(P: np.ndarray, x: np.ndarray, u: np.ndarray, s: np.ndarray, nu: np.ndar
          wa: np.ndarray, wb: np.ndarray, b1: np.ndarray, b2: np.ndarray, iterations: int
          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton fit of every row of P with its own blur; returns u, D and s."""
-    n = P.shape[0]
     X = x[None, :]
     sv = s.astype(float).copy()
     a1, D = _start(P, x, b1, b2)
     db = (b2 - b1)[:, None]
     base1 = P - b1[:, None] * X
     nu_c, wa_c, wb_c = nu[:, None], wa[:, None], wb[:, None]
+    J = np.empty((P.shape[0], P.shape[1], 4))
+    J[:, :, 0] = 1.0
+    diag = np.arange(4)
     for _ in range(iterations):
         S, S1, S2 = step_response(nu_c * (X - u[:, None]), sv[:, None], wa_c, wb_c)
         amp = D[:, None] + db * X
         r = base1 - a1[:, None] - amp * S
-        cols = [np.ones_like(S), S, -nu_c * amp * S1, amp * sv[:, None] * S2]
-        A = np.empty((n, 4, 4))
-        b = np.empty((n, 4))
-        for i in range(4):
-            b[:, i] = np.einsum("nm,nm->n", cols[i], r)
-            for j in range(i, 4):
-                A[:, i, j] = A[:, j, i] = np.einsum("nm,nm->n", cols[i], cols[j])
-        A[:, range(4), range(4)] += 1e-9
-        step = np.linalg.solve(A, b[:, :, None])[:, :, 0]
+        J[:, :, 1] = S
+        J[:, :, 2] = -nu_c * amp * S1
+        J[:, :, 3] = amp * sv[:, None] * S2
+        A = np.einsum("nmi,nmj->nij", J, J)
+        A[:, diag, diag] += 1e-9
+        step = np.linalg.solve(A, np.einsum("nmi,nm->ni", J, r)[:, :, None])[:, :, 0]
         a1 += step[:, 0]
         D += step[:, 1]
         u = u + np.clip(step[:, 2], -1.0, 1.0)
@@ -137,7 +149,7 @@ def _fit(P: np.ndarray, x: np.ndarray, u: np.ndarray, s: np.ndarray, nu: np.ndar
     return u, D, sv
 
 
-_H = 0.02  # the step tables' spacing (px of normal distance)
+_H = 0.04  # the step tables' spacing (px of normal distance; linear interpolation errs < 1e-3)
 
 
 def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
@@ -146,7 +158,9 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     """:func:`_fit` with s fixed per edge, S and S' read from one table per edge and the
     3 x 3 normal equations of (a1, D, u) solved in closed form; returns u, D and each
     row's residual RMS (of the last iteration's start)."""
-    reach = float(np.max(np.abs(x))) + 2.5
+    # beyond 4 blur widths and the footprint the step is flat: the table stops there
+    reach = min(float(np.max(np.abs(x))) + 2.5,
+                4.0 * float(np.max(blur)) + float(np.max(geo[:, 2] + geo[:, 3])) + 1.0)
     grid = np.arange(-reach, reach + _H, _H)
     ng = grid.size
     tS, tS1, _ = step_response(grid[None, :], blur[:, None], geo[:, 2:3], geo[:, 3:4])
@@ -187,10 +201,39 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     return u, D, misfit
 
 
+def _rows(gray: np.ndarray, edges: list[EdgePoints], use: list[int]) -> _Rows:
+    h, w = gray.shape
+    parts = []
+    for k, i in enumerate(use):
+        e = edges[i]
+        n = e.xy.shape[0]
+        t, c = (e.xy[:, 1], e.xy[:, 0]) if e.vertical else (e.xy[:, 0], e.xy[:, 1])
+        ti = np.rint(t).astype(np.intp)
+        parts.append((np.full(n, k), ti, c, e.contrast, ti * w if e.vertical else ti,
+                      np.full(n, 1 if e.vertical else w, np.intp),
+                      np.full(n, w if e.vertical else h, np.intp)))
+    cols = [np.concatenate(p) for p in zip(*parts, strict=True)]
+    return _Rows(*cols)
+
+
+def _edge_slopes(rows: _Rows, n_edges: int) -> np.ndarray:
+    """Each edge's slope d(minor)/d(major) by least squares, all edges at once."""
+    n = np.bincount(rows.edge, minlength=n_edges).astype(float)
+    t = rows.t.astype(float)
+    st, sc = (np.bincount(rows.edge, weights=v, minlength=n_edges) for v in (t, rows.c))
+    stt = np.bincount(rows.edge, weights=t * t, minlength=n_edges)
+    stc = np.bincount(rows.edge, weights=t * rows.c, minlength=n_edges)
+    den = n * stt - st * st
+    return np.where(np.abs(den) > 1e-9, (n * stc - st * sc) / np.where(den == 0, 1.0, den),
+                    0.0)
+
+
 def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int = 5,
                   iterations: int = 2, max_half_width: int = 10) -> list[EdgePoints]:
     """Refine the area-method crossings of straight edges (one EdgePoints each) by the
-    profile fit, all edges in one batch.
+    profile fit, all edges in one batch (every step is a few array operations for all the
+    columns of all the edges together: the cost is that of the arithmetic, not of the
+    calls).
 
     Each edge's Gaussian width is the median of per-column fits of a few of its columns;
     the window is widened (up to ``max_half_width``) to hold the whole transition and the
@@ -201,79 +244,54 @@ def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int 
     use = [i for i, e in enumerate(edges) if e.xy.shape[0] >= 8]
     if not use:
         return empty
-    geo = []
-    for i in use:
-        e = edges[i]
-        major = e.xy[:, 1] if e.vertical else e.xy[:, 0]
-        minor = e.xy[:, 0] if e.vertical else e.xy[:, 1]
-        slope = float(np.polyfit(major, minor, 1)[0])
-        nu = 1.0 / math.hypot(1.0, slope)  # |normal . minor axis|
-        geo.append((slope, nu, nu, abs(slope) * nu))  # the pixel's footprint: |n_x|, |n_y|
-    # the blur: a few columns of each edge, width free
+    ne = len(use)
+    flat = np.ascontiguousarray(gray).ravel()
+    rows = _rows(gray, edges, use)
+    slope = _edge_slopes(rows, ne)
+    nu = 1.0 / np.hypot(1.0, slope)  # |normal . minor axis|
+    wa, wb = nu, np.abs(slope) * nu  # the pixel's footprint across the edge: |n_x|, |n_y|
+    # the blur: a few columns of each edge (every n/8-th), width free
     x = np.arange(-half_width, half_width + 1, dtype=float)
-    Ps, u0s, rows, b1s, b2s = [], [], [], [], []
-    first = []
-    for k, i in enumerate(use):
-        P, centre, u0, keep = _windows(gray, edges[i], half_width)
-        sub = slice(None, None, max(1, P.shape[0] // 8))
-        b1, b2 = _tail_slopes(P) if P.shape[0] else (np.empty(0), np.empty(0))
-        first.append((P, centre, u0, keep, b1, b2))
-        b1s.append(b1[sub])
-        b2s.append(b2[sub])
-        Ps.append(P[sub])
-        u0s.append(u0[sub])
-        rows.append(np.full(len(u0[sub]), k))
-    row = np.concatenate(rows)
-    g = np.array(geo)
-    _, _, s_each = _fit(np.concatenate(Ps), x, np.concatenate(u0s), np.ones(row.size),
-                        g[row, 1], g[row, 2], g[row, 3], np.concatenate(b1s),
-                        np.concatenate(b2s), 4)
-    blur = np.array([float(np.median(s_each[row == k])) if np.any(row == k) else 1.0
-                     for k in range(len(use))])
-    reach = (3.0 * blur + 0.5 * (g[:, 2] + g[:, 3])) / g[:, 1]  # transition, minor px
+    P, centre, ok = _windows(flat, rows, half_width)
+    r1 = rows.take(ok)
+    b1, b2 = _tail_slopes(P, r1.edge, ne)
+    counts = np.bincount(r1.edge, minlength=ne)
+    pos = np.arange(r1.edge.size) - (np.cumsum(counts) - counts)[r1.edge]
+    sub = pos % np.maximum(counts // 8, 1)[r1.edge] == 0
+    ks = r1.edge[sub]
+    _, _, s_each = _fit(P[sub], x, (r1.c - centre)[sub], np.ones(ks.size), nu[ks], wa[ks],
+                        wb[ks], b1[sub], b2[sub], 4)
+    blur = np.nan_to_num(segment_median(s_each, ks, ne, upper=False), nan=1.0)
+    reach = (3.0 * blur + 0.5 * (wa + wb)) / nu  # transition, minor px
     hw = int(min(max(half_width, math.ceil(float(reach.max())) + _TAILS), max_half_width))
-    x = np.arange(-hw, hw + 1, dtype=float)
-    Ps, u0s, rows, cents, keeps, b1s, b2s = [], [], [], [], [], [], []
-    trimmed = []
-    for k, i in enumerate(use):
-        e = edges[i]
-        if hw > half_width:
-            # a wider window reaches further toward the corners: trim the ends as much
-            major = e.xy[:, 1] if e.vertical else e.xy[:, 0]
-            trim = (hw - half_width) * (1.0 + abs(geo[k][0]))
-            inner = (major >= major.min() + trim) & (major <= major.max() - trim)
-            e = EdgePoints(e.xy[inner], e.contrast[inner], e.vertical)
-        trimmed.append(e)
-        if hw == half_width:  # the windows of the blur's fit serve
-            P, centre, u0, keep, b1, b2 = first[k]
-        else:
-            P, centre, u0, keep = _windows(gray, e, hw)
-            b1, b2 = _tail_slopes(P) if P.shape[0] else (np.empty(0), np.empty(0))
-        b1s.append(b1)
-        b2s.append(b2)
-        Ps.append(P)
-        u0s.append(u0)
-        cents.append(centre)
-        keeps.append(keep)
-        rows.append(np.full(len(u0), k))
-    row = np.concatenate(rows)
-    if row.size == 0:
+    if hw > half_width:
+        # a wider window reaches further toward the corners: trim the ends as much
+        n_all = np.bincount(rows.edge, minlength=ne)  # >= 8 each
+        lo = np.minimum.reduceat(rows.t, np.cumsum(n_all) - n_all)
+        hi = np.maximum.reduceat(rows.t, np.cumsum(n_all) - n_all)
+        trim = ((hw - half_width) * (1.0 + np.abs(slope)))[rows.edge]
+        inner = (rows.t >= lo[rows.edge] + trim) & (rows.t <= hi[rows.edge] - trim)
+        x = np.arange(-hw, hw + 1, dtype=float)
+        P, centre, ok = _windows(flat, rows.take(inner), hw)
+        r1 = rows.take(inner).take(ok)
+        if r1.edge.size == 0:
+            return empty
+        b1, b2 = _tail_slopes(P, r1.edge, ne)
+    elif r1.edge.size == 0:
         return empty
-    u, D, misfit = _fit_tabulated(np.concatenate(Ps), x, np.concatenate(u0s), row, blur, g,
-                                  np.concatenate(b1s), np.concatenate(b2s), iterations)
-    ok = np.isfinite(u) & (np.abs(u) < hw - _TAILS) & (np.abs(D) > 1e-6)
+    geo = np.column_stack([slope, nu, wa, wb])
+    u, D, misfit = _fit_tabulated(P, x, r1.c - centre, r1.edge, blur, geo, b1, b2,
+                                  iterations)
+    good = np.isfinite(u) & (np.abs(u) < hw - _TAILS) & (np.abs(D) > 1e-6)
     # a column the model does not fit (a hole, a screw or a shadow's edge in its window)
-    for k in range(len(use)):
-        sel = row == k
-        if np.any(sel):
-            ok[sel] &= misfit[sel] <= _MISFIT * float(np.median(misfit[sel])) + 0.5
-    pos = np.concatenate(cents) + u
+    typical = segment_median(misfit, r1.edge, ne, upper=False)
+    good &= misfit <= _MISFIT * typical[r1.edge] + 0.5
+    p = centre + u
     out = list(empty)
     for k, i in enumerate(use):
-        e, sel = trimmed[k], row == k
-        keep, good = keeps[k], ok[sel]
-        t = (e.xy[:, 1] if e.vertical else e.xy[:, 0])[keep][good]
-        p = pos[sel][good]
-        xy = np.column_stack([p, t]) if e.vertical else np.column_stack([t, p])
-        out[i] = EdgePoints(xy, e.contrast[keep][good], e.vertical)
+        sel = good & (r1.edge == k)
+        t, q = r1.t[sel].astype(float), p[sel]
+        vertical = edges[i].vertical
+        xy = np.column_stack([q, t]) if vertical else np.column_stack([t, q])
+        out[i] = EdgePoints(xy, r1.contrast[sel], vertical)
     return out
