@@ -95,6 +95,7 @@ class RunResult:
     tilt_deg: float | None = None
     yaw_deg: float | None = None
     truth: dict[str, Any] | None = None
+    tilt_u_deg: float | None = None  # standard uncertainty of tilt_deg (k = 1)
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -115,7 +116,8 @@ class RunResult:
                    offset_norm_um=_opt_float(d.get("offset_norm_um")),
                    U_um=_opt_float(d.get("U_um")), iterations=int(d.get("iterations") or 0),
                    tilt_deg=_opt_float(d.get("tilt_deg")), yaw_deg=_opt_float(d.get("yaw_deg")),
-                   truth=truth if isinstance(truth, dict) else None, raw=dict(d))
+                   truth=truth if isinstance(truth, dict) else None,
+                   tilt_u_deg=_opt_float(d.get("tilt_u_deg")), raw=dict(d))
 
 
 @dataclass(frozen=True)

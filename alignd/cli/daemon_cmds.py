@@ -219,7 +219,9 @@ def result_text(result: dict[str, Any]) -> str:
         lines.append(f"  rule       {decision.get('rule_name')}")
     for key, label in (("tilt_deg", "tilt"), ("yaw_deg", "yaw")):
         if result.get(key) is not None:
-            lines.append(f"  {label:10s} {result[key]:.3f} deg")
+            u = result.get("tilt_u_deg") if key == "tilt_deg" else None
+            lines.append(f"  {label:10s} {result[key]:.3f} deg" if u is None else
+                         f"  {label:10s} {result[key]:.4f} +- {u:.4f} deg (u, k = 1)")
     truth = result.get("truth")
     if isinstance(truth, dict) and truth.get("offset_norm_um") is not None:
         lines.append(f"  truth      {truth['offset_norm_um']:.1f} um (simulator, not used by "

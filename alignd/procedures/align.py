@@ -52,8 +52,9 @@ from alignd.procedures.sweep import (
     measure,
     sweep_runout,
 )
-from alignd.procedures.tools import Tools, default_tools
+from alignd.procedures.tools import TiltReading, Tools, default_tools
 from alignd.textfmt import identity_text
+from drivers.camera import Camera, Frame
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +100,7 @@ class _State:
     last: Measurement | None = None
     decision: Decision | None = None
     tilt_deg: float | None = None
+    tilt_u_deg: float | None = None  # its standard uncertainty (k = 1)
     warnings: list[str] = field(default_factory=list)
     history: list[dict[str, Any]] = field(default_factory=list)
     calibration: Calibration | None = None
@@ -229,6 +231,7 @@ class _Run:
                                                   float(final.offset_um[1])),
             U_um=None if final is None else final.U_um,
             iterations=self.st.iterations, sweeps=self.st.sweeps, tilt_deg=self.st.tilt_deg,
+            tilt_u_deg=self.st.tilt_u_deg,
             yaw_deg=None if final is None else final.yaw_deg, config_error=config_error,
             budget=None if final is None else final.budget.to_dict(),
             decision=None if final is None else self._decision(final).to_dict())
@@ -589,8 +592,11 @@ class _Run:
             check_abort(self.abort)
             self._emit("precheck", "side-camera tilt")
             try:
-                self.st.tilt_deg = float(self.tools.tilt(side.grab(after=side.clock.now())))
-                self.recorder.event(f"pre-check: sample tilt {self.st.tilt_deg:+.4f} deg")
+                reading = self._tilt(side, pc.tilt_frames)
+                self.st.tilt_deg, self.st.tilt_u_deg = reading.tilt_deg, reading.u_deg
+                u = "" if reading.u_deg is None else f" +- {reading.u_deg:.4f}"
+                self.recorder.event(f"pre-check: sample tilt {self.st.tilt_deg:+.4f}{u} deg "
+                                    f"(mean of {reading.frames} side frame(s), u k = 1)")
                 if abs(self.st.tilt_deg) > pc.max_tilt_deg:
                     problems.append(("out_of_tolerance",
                                      f"sample tilt {self.st.tilt_deg:+.3f} deg exceeds "
@@ -601,6 +607,23 @@ class _Run:
             if pc.action == "refuse":
                 raise _Stop(verdict, f"pre-check refused: {msg}")
             self._warn(f"pre-check: {msg}")
+
+    def _tilt(self, side: Camera, n: int) -> TiltReading:
+        """The sample tilt over ``n`` side frames, each exposed after the one before (a
+        real camera's frames have independent noise; one frame's fit is good to a few
+        thousandths of a degree at worst). Tools without a multi-frame measurement give
+        the mean of ``tools.tilt`` and, from 2 frames on, its standard error."""
+        assert self.tools is not None
+        frames: list[Frame] = []
+        for _ in range(n):
+            check_abort(self.abort)
+            frames.append(grab_fresh(side, side.clock.now()))
+        if self.tools.tilt_frames is not None:
+            return self.tools.tilt_frames(frames)
+        assert self.tools.tilt is not None
+        t = np.array([float(self.tools.tilt(f)) for f in frames])
+        u = float(np.std(t, ddof=1) / math.sqrt(n)) if n > 1 else None
+        return TiltReading(float(t.mean()), u, n)
 
     def _check(self) -> tuple[Verdict, str, Measurement]:
         self.plan = self._verdict_plan()  # one sweep that can decide, not a ladder

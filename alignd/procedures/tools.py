@@ -70,6 +70,15 @@ class Detection(Protocol):
     def reason(self) -> str: ...
 
 
+@dataclass(frozen=True)
+class TiltReading:
+    """The sample tilt from one or more side frames: value and standard uncertainty."""
+
+    tilt_deg: float
+    u_deg: float | None  # None when the tool cannot say
+    frames: int = 1
+
+
 TrackFn = Callable[[Frame], Corners]
 SolveFn = Callable[[np.ndarray, np.ndarray, float | None], "CentreResult"]  # angles, points, px
 ScalarFn = Callable[[Frame], float]
@@ -88,6 +97,7 @@ class Tools:
     names: dict[str, str] | None = None
     rim: Callable[[Frame, float | None, float | None], RimInfo] | None = None
     side: Callable[[Frame], SideInfo] | None = None
+    tilt_frames: Callable[[list[Frame]], TiltReading] | None = None  # several frames at once
 
 
 def expected_holder_px(cfg: AligndConfig) -> tuple[float, float] | None:
@@ -187,6 +197,11 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
         return float(vision.measure_tilt(frame.gray, pole_roi_px=pole_roi,
                                   sample_roi_px=sample_roi).tilt_deg)
 
+    def tilt_frames(frames: list[Frame]) -> TiltReading:
+        av = vision.measure_tilt_frames([f.gray for f in frames], pole_roi_px=pole_roi,
+                                        sample_roi_px=sample_roi)
+        return TiltReading(av.tilt_deg, av.u_deg, av.n)
+
     def eccentricity(frame: Frame) -> float:
         return float(vision.fit_rim(frame.gray).eccentricity)
 
@@ -205,7 +220,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
                         float(res.pole_angle_deg), float(np.mean(xs)), float(np.mean(xp)))
 
     return Tools(track=track, solve=solve, tilt=tilt, eccentricity=eccentricity,
-                 rim=rim, side=side,
+                 rim=rim, side=side, tilt_frames=tilt_frames,
                  names={"track": "alignd.vision.track_holder",
                         "solve": "alignd.solve.solve_centre(auto)",
                         "tilt": "alignd.vision.measure_tilt",

@@ -3,7 +3,8 @@
 - :func:`track_holder` (top camera): holder corners, pose and quality per frame;
   :func:`measure_yaw`: the sample face's yaw from the turntable zero direction.
 - :func:`measure_tilt` (side camera): sample and pole angles and the tilt between them;
-  :func:`baseline_tilt`: the thesis' Canny + Hough method, for comparison.
+  :func:`measure_tilt_frames`: the mean of several frames and its uncertainty (the
+  pre-check); :func:`baseline_tilt`: the thesis' Canny + Hough method, for comparison.
 - :func:`fit_rim`: turntable rim ellipse, eccentricity and camera zenith (eq. 3.7);
   :class:`PlaneRectifier`: image points rectified to the turntable plane.
 - :mod:`alignd.vision.overlay`: report drawings.
@@ -24,19 +25,27 @@ from alignd.vision.rim import (
     fit_rim,
     zenith_from_ellipse,
 )
-from alignd.vision.side import SideMeasurement, baseline_tilt, measure_tilt
+from alignd.vision.side import (
+    SideMeasurement,
+    TiltAverage,
+    baseline_tilt,
+    measure_tilt,
+    measure_tilt_frames,
+)
 
 __all__ = [
     "HolderDetection",
     "PlaneRectifier",
     "RimFit",
     "SideMeasurement",
+    "TiltAverage",
     "YawMeasurement",
     "baseline_tilt",
     "camera_zenith_from_eccentricity",
     "eccentricity_from_zenith",
     "fit_rim",
     "measure_tilt",
+    "measure_tilt_frames",
     "measure_yaw",
     "order_corners",
     "track_holder",

@@ -39,8 +39,8 @@ SIGN_CONVENTION = ("angles in deg from the image vertical, positive when the lin
                    "toward +x (clockwise on screen, the top camera's x-toward-y sense); "
                    "tilt = sample - pole")
 
-__all__ = ["SIGN_CONVENTION", "SideEdge", "SideMeasurement", "baseline_tilt",
-           "find_vertical_edges", "measure_tilt"]
+__all__ = ["SIGN_CONVENTION", "SideEdge", "SideMeasurement", "TiltAverage", "baseline_tilt",
+           "find_vertical_edges", "measure_tilt", "measure_tilt_frames"]
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,9 @@ class SideEdge:
     rows: tuple[int, int]
     contrast: float  # right level minus left level (DN)
     line: Line
+    spread: Spread | None = None  # the blur model of the profile fit (None: area method)
+    half_width: int | None = None  # of the profile fit's windows (px)
+    blur_px: float | None = None  # the profile fit's blur width
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,8 @@ class SideMeasurement:
     sample_edges: tuple[SideEdge, ...]
     pole_edges: tuple[SideEdge, ...]
     mode: str = "auto"  # "roi": found in the configured regions; "auto": found unaided
+    rois: tuple[tuple[int, int, int, int] | None, tuple[int, int, int, int] | None] = (None,
+                                                                                      None)
 
     def to_json(self) -> dict[str, object]:
         return {"sample_angle_deg": self.sample_angle_deg, "pole_angle_deg": self.pole_angle_deg,
@@ -223,30 +228,38 @@ SPREADS: tuple[Spread, ...] = ("optics", "pixel grid")
 
 
 def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
-              roi: tuple[int, int, int, int] | None, end_trim_rows: int = 10) -> SideEdge:
+              roi: tuple[int, int, int, int] | None, end_trim_rows: int = 10,
+              spreads: tuple[Spread, ...] = SPREADS, strict: bool = False,
+              half_width: int | None = None) -> SideEdge | None:
     """The edge re-measured as a blurred step over its rows (:mod:`edge_profile`); the
-    window stays clear of the other edges and inside the region. Unchanged if that fails."""
+    window stays clear of the other edges and inside the region. Unchanged if that fails
+    (None when ``strict``: a tracked edge must be measured in this frame)."""
     h, w = gray.shape
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, w, h)
     x0, y0, x1, y1 = max(int(x0), 0), max(int(y0), 0), min(int(x1), w), min(int(y1), h)
     gaps = [abs(o.x_mid_px - e.x_mid_px) for o in others if abs(o.x_mid_px - e.x_mid_px) > 3]
-    hw = int(np.clip(math.floor(min(gaps, default=99.0) - 6.0), 4, 7))
+    hw = half_width or int(np.clip(math.floor(min(gaps, default=99.0) - 6.0), 4, 7))
     r0 = max(e.rows[0] + end_trim_rows, y0 + 4)
     r1 = min(e.rows[1] - end_trim_rows, y1 - 5)
     y_mid = (e.rows[0] + e.rows[1]) / 2
     b = -float(e.line.n[1] / e.line.n[0])
     fits = [fit_vertical_edge(gray, float(e.line.minor_at(y_mid)), b, y_mid,
                               np.arange(r0, r1 + 1), half_width=hw, x_limits=(x0, x1),
-                              spread=spread) for spread in SPREADS]
+                              spread=spread, blur0=e.blur_px or 1.0) for spread in spreads]
     # the spread model that describes the edge better: residuals in DN over the same pixels
     fit = min((f for f in fits if f is not None), key=lambda f: f.rms_dn, default=None)
-    # it refines the edge found, never moves to another one
-    if fit is None or abs(fit.a - float(e.line.minor_at(y_mid))) > 1.5 or abs(
-            fit.angle_deg - e.angle_deg) > 0.1:
-        return e
+    # it refines the edge found, never moves to another one: within 3 px of it over the
+    # rows, half the 6 px that separate two edges found (an angle bound of 0.1 deg, or
+    # 1.5 px, rejected good fits where the area method was off: 0.1-0.15 deg off on JPEG
+    # frames, 1.8 px at an end, where the profile fit was within 0.003 deg)
+    ends = np.array([r0, y_mid, r1], float)
+    if fit is None or np.max(np.abs(fit.a + fit.b * (ends - fit.y_mid)
+                                    - e.line.minor_at(ends))) > 3.0:
+        return None if strict else e
     ln = fit.line()
     ln = replace(ln, rms_px=e.line.rms_px)
-    return replace(e, angle_deg=fit.angle_deg, sigma_deg=fit.sigma_deg, x_mid_px=fit.a, line=ln)
+    return replace(e, angle_deg=fit.angle_deg, sigma_deg=fit.sigma_deg, x_mid_px=fit.a, line=ln,
+                   spread=fit.spread, half_width=hw, blur_px=fit.blur_px)
 
 
 def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
@@ -379,11 +392,91 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
     sample = _partner(main, rest)
     gray = as_gray(image, "side image")
     others = [*edges, *pole, *sample]
-    pole = [_profiled(gray, e, others, pole_roi_px) for e in pole]
-    sample = [_profiled(gray, e, others, sample_roi_px) for e in sample]
+    pole = [p for e in pole if (p := _profiled(gray, e, others, pole_roi_px)) is not None]
+    sample = [p for e in sample if (p := _profiled(gray, e, others, sample_roi_px)) is not None]
+    return _measurement(sample, pole, mode, (pole_roi_px, sample_roi_px))
+
+
+def _measurement(sample: list[SideEdge], pole: list[SideEdge], mode: str,
+                 rois: tuple[tuple[int, int, int, int] | None, tuple[int, int, int, int] | None]
+                 ) -> SideMeasurement:
     sa, ss = _combine(sample)
     pa, ps = _combine(pole)
-    return SideMeasurement(sa, pa, sa - pa, math.hypot(ss, ps), tuple(sample), tuple(pole), mode)
+    return SideMeasurement(sa, pa, sa - pa, math.hypot(ss, ps), tuple(sample), tuple(pole), mode,
+                           rois)
+
+
+def _tracked(image: np.ndarray, prev: SideMeasurement) -> SideMeasurement | None:
+    """The same pole and sample edges measured again in a later frame of the same view,
+    each started from where ``prev`` found it and fitted with the blur model chosen there
+    (the search is skipped: the rig does not move between pre-check frames). None when an
+    edge is not where it was."""
+    gray = as_gray(image, "side image")
+    others = [*prev.pole_edges, *prev.sample_edges]
+    pole_roi, sample_roi = prev.rois
+    out: list[list[SideEdge]] = [[], []]
+    for k, (edges, roi) in enumerate(((prev.pole_edges, pole_roi),
+                                      (prev.sample_edges, sample_roi))):
+        for e in edges:
+            spreads = (e.spread,) if e.spread is not None else SPREADS
+            p = _profiled(gray, e, others, roi, spreads=spreads, strict=True,
+                          half_width=e.half_width)
+            if p is None:
+                return None
+            out[k].append(p)
+    return _measurement(out[1], out[0], prev.mode, prev.rois)
+
+
+@dataclass(frozen=True)
+class TiltAverage:
+    """The tilt of N frames of one view: their mean and its standard uncertainty.
+
+    ``u_deg`` is the larger of the fits' own (sqrt of the mean per-frame variance over N)
+    and the frames' scatter (their standard deviation over sqrt N, from 3 frames on): a
+    fit that understates its error (a coding artefact it does not model) shows up in the
+    scatter of independent frames."""
+
+    tilt_deg: float
+    u_deg: float
+    frames: tuple[SideMeasurement, ...]
+
+    @property
+    def n(self) -> int:
+        return len(self.frames)
+
+    @property
+    def scatter_deg(self) -> float:
+        """Standard deviation of the per-frame tilts (NaN for fewer than two frames)."""
+        t = [m.tilt_deg for m in self.frames]
+        return float(np.std(t, ddof=1)) if len(t) > 1 else math.nan
+
+    def to_json(self) -> dict[str, object]:
+        first = self.frames[0].to_json()
+        return {**first, "tilt_deg": self.tilt_deg, "sigma_deg": self.u_deg,
+                "sample_angle_deg": float(np.mean([m.sample_angle_deg for m in self.frames])),
+                "pole_angle_deg": float(np.mean([m.pole_angle_deg for m in self.frames])),
+                "frames": self.n, "frame_tilts_deg": [m.tilt_deg for m in self.frames]}
+
+
+def measure_tilt_frames(images: list[np.ndarray], *,
+                        pole_roi_px: tuple[int, int, int, int] | None = None,
+                        sample_roi_px: tuple[int, int, int, int] | None = None) -> TiltAverage:
+    """The tilt from several frames of the same view (the pre-check's measurement): the
+    first frame is measured as :func:`measure_tilt` does, the others track its edges (a
+    full search again where an edge is not where it was)."""
+    if not images:
+        raise VisionError("side image: no frame to measure the tilt in")
+    first = measure_tilt(images[0], pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px)
+    frames = [first]
+    for img in images[1:]:
+        m = _tracked(img, first)
+        frames.append(m if m is not None else measure_tilt(
+            img, pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px))
+    t = np.array([m.tilt_deg for m in frames])
+    n = len(frames)
+    u_fit = math.sqrt(float(np.mean([m.sigma_deg ** 2 for m in frames])) / n)
+    u_scatter = float(np.std(t, ddof=1)) / math.sqrt(n) if n >= 3 else 0.0
+    return TiltAverage(float(t.mean()), max(u_fit, u_scatter), tuple(frames))
 
 
 def baseline_tilt(image: np.ndarray, pole_x_px: float, sample_x_px: float, *,

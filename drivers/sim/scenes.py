@@ -112,6 +112,12 @@ class SideSceneSample:
     sample_roi_px: tuple[int, int, int, int]
     encoding: Encoding
     params: dict[str, object] = field(default_factory=dict)
+    more_frames: tuple[np.ndarray, ...] = ()  # further frames of the view, own noise
+
+    @property
+    def frames(self) -> tuple[np.ndarray, ...]:
+        """Every frame of the view: ``image`` first."""
+        return (self.image, *self.more_frames)
 
     @property
     def tilt_deg(self) -> float:
@@ -578,13 +584,18 @@ def _stretch(img: np.ndarray, ss: int) -> np.ndarray:
 
 def _wide(poly: np.ndarray, ss: int) -> Polygon:
     """A polygon (pixel coordinates) on the ss x wider drawing grid: exact area fractions
-    of each sub-column (the map is linear)."""
-    return Polygon(poly * np.array([float(ss), 1.0]))
+    of each sub-column (the map is linear). Pixel k spans [k - 1/2, k + 1/2) and is the mean
+    of sub-columns ss k .. ss k + ss - 1, each spanning its index +- 1/2: x maps to
+    ss x + (ss - 1) / 2 (without the offset every outline sat 0.375 px left of its truth)."""
+    return Polygon(poly * np.array([float(ss), 1.0]) + np.array([(ss - 1) / 2, 0.0]))
 
 
 def random_side_scene(rng: np.random.Generator, category: str | None = None,
-                      size_px: tuple[int, int] = (1280, 720)) -> SideSceneSample:
-    """One randomised side-camera frame (see the module docstring)."""
+                      size_px: tuple[int, int] = (1280, 720), frames: int = 1
+                      ) -> SideSceneSample:
+    """One randomised side-camera view (see the module docstring); ``frames`` > 1 adds
+    further frames of the same view with independent noise, as a camera streams them
+    (``SideSceneSample.frames``)."""
     cat = str(category or SIDE_CATEGORIES[int(rng.integers(len(SIDE_CATEGORIES)))])
     w, h = size_px
     enc = Encoding(8, False, int(rng.integers(60, 96))) if cat == "jpeg" else (
@@ -685,8 +696,13 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
                            borderType=cv2.BORDER_REFLECT)
     img = img.reshape(h, w, ss).mean(axis=2)
     params["blur_px"] = blur
-    out = _finish(img, rng, blur=0.0, read_noise=float(rng.uniform(0.5, 2.0)),
-                  electrons_per_dn=float(rng.uniform(40, 150)), enc=enc)
+    noise = {"read_noise": float(rng.uniform(0.5, 2.0)),
+             "electrons_per_dn": float(rng.uniform(40, 150))}
+    out = _finish(img, rng, blur=0.0, enc=enc, **noise)
+    # more frames of the same view: their own noise (and coding) from a child generator,
+    # so that the scenes drawn after this one do not depend on how many frames were asked
+    more = tuple(_finish(img, child, blur=0.0, enc=enc, **noise)
+                 for child in (rng.spawn(frames - 1) if frames > 1 else []))
     ta = math.tan(math.radians(samp_ang))
     x_left_mid = float(slab[0, 0] - (y_mid - y_top) * ta)
     xs = (x_left_mid, x_left_mid + ws)
@@ -700,7 +716,7 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     sr = (max(int(near - half), 0), max(rows[0] + 10, 0), min(int(near + half + 1), w),
           min(rows[1] - 10, h))
     return SideSceneSample(out, cat, samp_ang, pole_ang, xs, near, pole_mid, rows, pr, sr,
-                           enc, params)
+                           enc, params, more)
 
 
 # ---- rim ---------------------------------------------------------------------------------

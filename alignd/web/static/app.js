@@ -301,7 +301,9 @@ async function loadRun() {
     const off = res.offset_um ? `${offsetText(res)} (k = 2) &nbsp; <span class="muted">x ${fmt(res.offset_um[0])}, ` +
       `y ${fmt(res.offset_um[1])} ${UM}</span>` : offsetText(res);
     kv($("#run-summary"), [["offset", off], ["iterations", res.iterations],
-      ["tilt", res.tilt_deg !== null && res.tilt_deg !== undefined ? `${fmt(res.tilt_deg, 3)}\u00b0` : ""],
+      ["tilt", res.tilt_deg !== null && res.tilt_deg !== undefined ? `${fmt(res.tilt_deg, 4)}\u00b0` +
+        (res.tilt_u_deg !== null && res.tilt_u_deg !== undefined
+          ? ` \u00b1 ${fmt(res.tilt_u_deg, 4)}\u00b0 <span class="muted">(u, k = 1)</span>` : "") : ""],
       ["yaw", res.yaw_deg !== null && res.yaw_deg !== undefined ? `${fmt(res.yaw_deg, 3)}\u00b0` : ""],
       ["started", `${esc(when(run.started_at))} UTC by ${esc(run.user || "?")}/${esc(run.started_by)}`],
       ["ended", run.ended_at ? `${esc(when(run.ended_at))} UTC` : "still running"],
