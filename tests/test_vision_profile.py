@@ -133,3 +133,37 @@ def test_tracking_refines_as_the_full_search_does() -> None:
     again = track_holder(sc.image, expected_size_px=sc.expected_size_px, hint=det.corners_px)
     assert det.ok and again.ok
     np.testing.assert_allclose(again.corners_px, det.corners_px, atol=0.01)
+
+
+def _short_edge_offsets(trials: int, seed: int) -> np.ndarray:
+    """The mean signed offset of the fitted crossings from the true line, per noise
+    realisation, of a short (60 px) edge of 40 DN contrast without any lighting gradient,
+    blurred 1 px, with 3 DN of sensor noise (the corpus's typical small-holder side)."""
+    rng = np.random.default_rng(seed)
+    w, h = 120, 80
+    ras = Raster((w, h), 120.0, (60.0, 40.0), 0.0)
+    out = []
+    for _ in range(trials):
+        t = math.radians(float(rng.uniform(5.0, 40.0)))
+        c = np.array([60.0, 40.0]) + rng.uniform(-0.5, 0.5, 2)
+        u = np.array([math.cos(t), math.sin(t)])
+        v = np.array([-u[1], u[0]])
+        poly = np.array([c - 200 * u, c + 200 * u, c + 200 * u + 200 * v, c - 200 * u + 200 * v])
+        img = np.full((h, w), 60.0, np.float32)
+        img += (100.0 - img) * coverage(Polygon(poly), ras, (0, 0, w, h))
+        img = cv2.GaussianBlur(img, (0, 0), 1.0) + rng.normal(0.0, 3.0, (h, w)).astype(np.float32)
+        img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        pts = edge_points(img, c - 30 * u, c + 30 * u, half_width=5, margin_px=0.0)
+        fine = fit_crossings(img, [pts])[0]
+        out.append(float(((fine.xy - c) @ v).mean()))
+    return np.array(out)
+
+
+def test_noise_in_the_tails_does_not_shift_a_short_edge() -> None:
+    """Without a lighting gradient, the sensor noise of the windows' tails must not come
+    back as one illumination slope for the whole edge, which shifts every crossing alike
+    (an error the scatter along the line does not show): over 60 seeded noise
+    realisations the edge's mean offset stays within 0.05 px RMS (measured 0.034; 0.087
+    with the noisy slope used whole)."""
+    off = _short_edge_offsets(60, 21)
+    assert float(np.sqrt(np.mean(off ** 2))) < 0.05

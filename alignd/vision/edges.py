@@ -139,17 +139,36 @@ def _median(v: np.ndarray) -> float:
     return float(np.partition(v, k)[k])
 
 
+_SLOPE_SE = 3.0  # an edge's mean slope is shrunk toward 0 by its standard error times this
+
+
+def _shrink(g: np.ndarray | float, se: np.ndarray | float) -> np.ndarray:
+    """An edge's mean illumination slope g shrunk toward zero as g^2 / (g^2 + (c se)^2).
+
+    One slope serves every column of the edge, so its noise is common to all of them: it
+    shifts the whole edge (its level, extrapolated from the tails to the crossing, moves
+    by the slope's error times a few pixels) and no scatter along the line reveals it.
+    Where the slope is not clearly above its noise (no real gradient: only the sensor
+    noise of the 3-pixel tails) it costs more than it corrects, and is taken near zero;
+    a real gradient or penumbra, many standard errors strong, is kept almost whole.
+    """
+    g = np.asarray(g, float)
+    c2 = (_SLOPE_SE * np.asarray(se, float)) ** 2
+    return g * (g * g) / (g * g + c2 + 1e-30)
+
+
 def adaptive_slope(v: np.ndarray, k: int) -> np.ndarray:
-    """Per-column slope: the edge's robust mean, replaced by the local (moving) mean over
-    +-k columns only where that differs from it by more than 4 of its own standard errors
-    (one value per edge, whose noise would otherwise tilt the line, except where a
-    shadow's penumbra crosses the edge)."""
-    g = _robust_mean(v)
+    """Per-column slope: the edge's robust mean (shrunk by :func:`_shrink`), replaced by
+    the local (moving) mean over +-k columns only where that differs from the mean by
+    more than 4 of its own standard errors (one value per edge, whose noise would
+    otherwise tilt the line, except where a shadow's penumbra crosses the edge)."""
+    g, n_kept, sd = _robust_mean_n(v)
+    gs = float(_shrink(g, sd / math.sqrt(max(n_kept, 1))))
     if v.size < 3 or k <= 0:
-        return np.full(v.shape, g)
+        return np.full(v.shape, gs)
     loc = _moving_mean(v, k)
     sig = float(_median(np.abs(v - _median(v)))) * 1.4826 / math.sqrt(2 * k + 1)
-    return np.where(np.abs(loc - g) > 4 * sig + 1e-9, loc, g)
+    return np.where(np.abs(loc - g) > 4 * sig + 1e-9, loc, gs)
 
 
 def segment_median(v: np.ndarray, seg: np.ndarray, n_seg: int, *, upper: bool = True
@@ -187,9 +206,11 @@ def adaptive_slopes(v: np.ndarray, seg: np.ndarray, n_seg: int, k: int) -> np.nd
     keep = dev <= 4.0 * (mad + 1e-9)[seg]
     nk = np.bincount(seg, weights=keep, minlength=n_seg)
     sk = np.bincount(seg, weights=np.where(keep, v, 0.0), minlength=n_seg)
-    g = np.where(nk > 0, sk / np.maximum(nk, 1.0), med)[seg]
+    g_e = np.where(nk > 0, sk / np.maximum(nk, 1.0), med)
+    g = g_e[seg]
+    gs = _shrink(g_e, np.nan_to_num(mad) / np.sqrt(np.maximum(nk, 1.0)))[seg]
     if k <= 0:
-        return g
+        return gs
     # the moving mean over +-k columns, truncated at each edge's ends (k <= (n - 1) / 2)
     n = counts[seg]
     ke = np.minimum(k, (n - 1) // 2)
@@ -199,17 +220,19 @@ def adaptive_slopes(v: np.ndarray, seg: np.ndarray, n_seg: int, k: int) -> np.nd
     csum = np.concatenate(([0.0], np.cumsum(v)))
     loc = (csum[st + hi + 1] - csum[st + lo]) / (hi - lo + 1)
     sig = (mad / math.sqrt(2 * k + 1))[seg]
-    return np.where((n >= 3) & (np.abs(loc - g) > 4.0 * sig + 1e-9), loc, g)
+    return np.where((n >= 3) & (np.abs(loc - g) > 4.0 * sig + 1e-9), loc, gs)
 
 
-def _robust_mean(v: np.ndarray) -> float:
-    """Mean of v without its outliers (beyond 4 robust sigma of the median)."""
+def _robust_mean_n(v: np.ndarray) -> tuple[float, int, float]:
+    """Mean of v without its outliers (beyond 4 robust sigma of the median), the number
+    of values it kept and their robust sigma."""
     if v.size == 0:
-        return 0.0
+        return 0.0, 0, 0.0
     med = float(_median(v))
-    sig = float(_median(np.abs(v - med))) * 1.4826 + 1e-9
-    keep = np.abs(v - med) <= 4 * sig
-    return float(v[keep].mean()) if keep.any() else med
+    mad = float(_median(np.abs(v - med))) * 1.4826
+    keep = np.abs(v - med) <= 4 * (mad + 1e-9)
+    n = int(np.count_nonzero(keep))
+    return (float(v[keep].mean()) if n else med), n, mad
 
 
 def _edge_columns(shape: tuple[int, int], p0: np.ndarray, p1: np.ndarray, margin_px: float,
