@@ -129,19 +129,19 @@ def _fit(P: np.ndarray, x: np.ndarray, u: np.ndarray, s: np.ndarray, nu: np.ndar
     db = (b2 - b1)[:, None]
     base1 = P - b1[:, None] * X
     nu_c, wa_c, wb_c = nu[:, None], wa[:, None], wb[:, None]
-    J = np.empty((P.shape[0], P.shape[1], 4))
-    J[:, :, 0] = 1.0
-    diag = np.arange(4)
+    J = np.empty((P.shape[0], 4, P.shape[1]))  # (row, parameter, pixel): matmul order
+    J[:, 0] = 1.0
+    JT = J.transpose(0, 2, 1)
+    ridge = 1e-9 * np.eye(4)
     for _ in range(iterations):
         S, S1, S2 = step_response(nu_c * (X - u[:, None]), sv[:, None], wa_c, wb_c)
         amp = D[:, None] + db * X
         r = base1 - a1[:, None] - amp * S
-        J[:, :, 1] = S
-        J[:, :, 2] = -nu_c * amp * S1
-        J[:, :, 3] = amp * sv[:, None] * S2
-        A = np.einsum("nmi,nmj->nij", J, J)
-        A[:, diag, diag] += 1e-9
-        step = np.linalg.solve(A, np.einsum("nmi,nm->ni", J, r)[:, :, None])[:, :, 0]
+        J[:, 1] = S
+        J[:, 2] = -nu_c * amp * S1
+        J[:, 3] = amp * sv[:, None] * S2
+        A = J @ JT + ridge
+        step = np.linalg.solve(A, J @ r[:, :, None])[:, :, 0]
         a1 += step[:, 0]
         D += step[:, 1]
         u = u + np.clip(step[:, 2], -1.0, 1.0)
@@ -164,27 +164,34 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     grid = np.arange(-reach, reach + _H, _H)
     ng = grid.size
     tS, tS1, _ = step_response(grid[None, :], blur[:, None], geo[:, 2:3], geo[:, 3:4])
+    # S and S' at the nodes and their steps to the next node (linear interpolation)
     tabS, tabS1 = tS.ravel(), tS1.ravel()
-    base_idx = (row * ng)[:, None]
+    dS = np.diff(tS, axis=1, append=tS[:, -1:]).ravel()
+    dS1 = np.diff(tS1, axis=1, append=tS1[:, -1:]).ravel()
     X = x[None, :]
     nu_c = geo[row, 1][:, None]
+    # the normal distance's table index is (nu (x - u) + reach) / H: its u-free part once
+    lead = (nu_c * X + reach) / _H
+    nu_h = nu_c[:, 0] / _H
+    base_idx = (row * ng)[:, None]
     a1, D = _start(P, x, b1, b2)
     db = (b2 - b1)[:, None]
     base1 = P - b1[:, None] * X
     m = float(P.shape[1])
     for _ in range(iterations):
-        f = np.clip((nu_c * (X - u[:, None]) + reach) / _H, 0.0, ng - 1.001)
+        f = np.clip(lead - (nu_h * u)[:, None], 0.0, ng - 1.001)
         i = f.astype(np.intp)
         f -= i
         i += base_idx
-        S = tabS[i] * (1.0 - f) + tabS[i + 1] * f
-        S1 = tabS1[i] * (1.0 - f) + tabS1[i + 1] * f
+        S = tabS[i] + dS[i] * f
+        S1 = tabS1[i] + dS1[i] * f
         amp = D[:, None] + db * X
         r = base1 - a1[:, None] - amp * S
         g = -nu_c * amp * S1
         sS, sg = S.sum(axis=1), g.sum(axis=1)
-        sSS, sSg, sgg = (S * S).sum(axis=1), (S * g).sum(axis=1), (g * g).sum(axis=1)
-        r0, rS, rg = r.sum(axis=1), (r * S).sum(axis=1), (r * g).sum(axis=1)
+        sSS, sSg, sgg = (np.einsum("ij,ij->i", S, S), np.einsum("ij,ij->i", S, g),
+                         np.einsum("ij,ij->i", g, g))
+        r0, rS, rg = r.sum(axis=1), np.einsum("ij,ij->i", r, S), np.einsum("ij,ij->i", r, g)
         # the symmetric [[m, sS, sg], [sS, sSS, sSg], [sg, sSg, sgg]] by its cofactors
         c00 = sSS * sgg - sSg * sSg
         c01 = sSg * sg - sS * sgg
