@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -47,7 +47,7 @@ from alignd.vision.edges import (
 )
 from alignd.vision.holder_search import search_candidates
 from alignd.vision.lens import Lens
-from alignd.vision.profile_fit import fit_crossings
+from alignd.vision.profile_fit import fit_crossings_blur
 
 __all__ = ["HolderDetection", "YawMeasurement", "measure_yaw", "order_corners", "track_holder"]
 
@@ -74,6 +74,9 @@ class HolderDetection:
     edge_rms_px: tuple[float, ...] = ()
     reason: str = ""
     lines: tuple[Line | None, ...] = ()
+    # each side's Gaussian edge width (px) found by the profile fit, side k running from
+    # corner k to corner k + 1; () when the profile fit was not used
+    side_blur_px: tuple[float, ...] = ()
 
     def to_json(self) -> dict[str, object]:
         """The analyze contract's fields (NaN corners become null)."""
@@ -143,15 +146,25 @@ def _ideal(pts: EdgePoints, lens: Lens | None) -> EdgePoints:
 
 
 def _profile_sides(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
-                   half_width: int, lens: Lens | None = None
-                   ) -> list[tuple[Line | None, EdgePoints]]:
-    """The area method's crossings refined by the profile fit, and their lines."""
-    fine = fit_crossings(gray, [pts for _ln, pts in sides], half_width=half_width)
-    return [(fit_line(_ideal(f, lens)), f) for f in fine]
+                   half_width: int, lens: Lens | None = None, blur: np.ndarray | None = None
+                   ) -> tuple[list[tuple[Line | None, EdgePoints]], np.ndarray]:
+    """The area method's crossings refined by the profile fit, their lines and each
+    side's blur (``blur``: known widths, see :func:`fit_crossings_blur`)."""
+    fine, widths = fit_crossings_blur(gray, [pts for _ln, pts in sides],
+                                      half_width=half_width, blur=blur)
+    return [(fit_line(_ideal(f, lens)), f) for f in fine], widths
+
+
+def _side_match(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """For each side of quadrilateral ``dst`` (corner k to k + 1), the index of the side
+    of ``src`` nearest to it (by their midpoints): the same side in another order."""
+    ms = (src + np.roll(src, -1, axis=0)) / 2
+    md = (dst + np.roll(dst, -1, axis=0)) / 2
+    return np.argmin(((md[:, None, :] - ms[None, :, :]) ** 2).sum(axis=2), axis=1)
 
 
 def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None = None,
-                 hint: np.ndarray | None = None, *, polarity: str | None = None,
+                 hint: np.ndarray | HolderDetection | None = None, *, polarity: str | None = None,
                  min_contrast: float = 15.0, max_rms_px: float = 0.6,
                  passes: int = 1, lens: Lens | None = None,
                  size_tolerance: float = 0.12, max_candidates: int = 6,
@@ -163,7 +176,10 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     :func:`alignd.vision.holder_search.search_candidates`)
     and rejects any result more than ``size_tolerance`` off; ``hint`` (previous corners)
     seeds tracking, keeps the corner order and falls back to a full search when the holder
-    is not there; ``polarity`` ("dark"/"light") restricts the search; ``lens`` (focal
+    is not there; given as the previous frame's detection, its sides' blur widths are
+    reused where every side moved by less than a pixel (the blur estimate is a third of
+    the profile fit's cost; a side that moved, or a full search, measures it anew);
+    ``polarity`` ("dark"/"light") restricts the search; ``lens`` (focal
     length, principal point, k1) straightens distorted sides (corners stay in frame
     pixels; the angle and the size are those of the undistorted image). ``refine``:
     "profile" refines the accepted sides by the profile fit of
@@ -176,7 +192,13 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     # tracking reads a few thousand pixels: an 8-bit frame is used as it is (no copy)
     gray = raw if raw.ndim == 2 and raw.dtype == np.uint8 and min(raw.shape) >= 16 else \
         as_gray(image, "top image")
-    hint_arr = None if hint is None else np.asarray(hint, float)
+    prior: tuple[np.ndarray, np.ndarray] | None = None  # previous corners, side blurs
+    if isinstance(hint, HolderDetection):
+        hint_arr: np.ndarray | None = np.asarray(hint.corners_px, float)
+        if len(hint.side_blur_px) == 4 and np.all(np.isfinite(hint.side_blur_px)):
+            prior = (np.asarray(hint.corners_px, float), np.asarray(hint.side_blur_px))
+    else:
+        hint_arr = None if hint is None else np.asarray(hint, float)
     reasons: list[str] = []
     if hint_arr is not None and hint_arr.shape == (4, 2) and np.all(np.isfinite(hint_arr)):
         # tracking: the previous corners seed the fine windows (or, when the sides moved,
@@ -185,7 +207,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         try:
             det = _refine(gray, order_corners(hint_arr), polarity, expected_size_px, hint_arr,
                           min_contrast, max_rms_px, passes, lens, size_tolerance,
-                          refine == "profile", seeded=True)
+                          refine == "profile", seeded=True, prior=prior)
             if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px)
                                                 - order_corners(hint_arr), axis=1)) > _RESEED_PX:
                 # the holder moved far within the +-10 px side search (a wide sweep's
@@ -243,19 +265,23 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
 def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
             expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
             min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None = None,
-            size_tolerance: float = 0.15, profile: bool = True, seeded: bool = False
-            ) -> HolderDetection:
+            size_tolerance: float = 0.15, profile: bool = True, seeded: bool = False,
+            prior: tuple[np.ndarray, np.ndarray] | None = None) -> HolderDetection:
     """Fine fit from approximate corners (a coarse box or, ``seeded``, the previous frame's
-    corners)."""
+    corners; ``prior``: those corners and their sides' blurs, reused when the sides held)."""
     # (a distorted side is curved in the frame: windows along the straight segment between
     # its corners would miss its middle, so with a lens the coarse search always runs)
     straight = lens is None or lens.k1 == 0.0
     sides = _fit_sides(gray, corners, _HALF_WIDTH, 10.0, min_contrast, lens) \
         if seeded and straight and passes <= 1 else None
+    blur = None
     if sides is None or not _seed_holds(sides, corners, max_rms_px, lens):
         corners, sides = _locate(gray, corners, min_contrast, passes, lens)
+    elif prior is not None:
+        # every side within a pixel of where it was: its blur is the previous frame's
+        blur = prior[1][_side_match(prior[0], corners)]
     return _finish(gray, corners, sides, polarity, expected_size_px, hint, min_contrast,
-                   max_rms_px, lens, size_tolerance, profile)
+                   max_rms_px, lens, size_tolerance, profile, blur)
 
 
 def _seed_holds(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
@@ -319,7 +345,8 @@ def _locate(gray: np.ndarray, corners: np.ndarray, min_contrast: float, passes: 
 def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
             polarity: str | None, expected_size_px: tuple[float, float] | None,
             hint: np.ndarray | None, min_contrast: float, max_rms_px: float,
-            lens: Lens | None, size_tolerance: float, profile: bool) -> HolderDetection:
+            lens: Lens | None, size_tolerance: float, profile: bool,
+            blur: np.ndarray | None = None) -> HolderDetection:
     """The detection from the sides' area-method fits: checked, widened for soft edges,
     refined by the profile fit where that agrees."""
     pol = _polarity(gray, corners)
@@ -336,7 +363,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             hw, used = 9, wide
     if det.ok and profile:
         # the sides it passed, refined by the profile fit: kept when they pass as well
-        fine = _profile_sides(gray, used, hw, lens)
+        fine, widths = _profile_sides(gray, used, hw, lens, blur)
         det3 = _assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
                          size_tolerance)
         # two estimates of the same corners must agree within the area method's
@@ -345,7 +372,8 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         moved = float(np.max(np.linalg.norm(det3.corners_px - det.corners_px, axis=1))) \
             if det3.ok else math.inf
         if moved <= _AGREE_PX + _AGREE_SIGMA * det.corner_sigma_px:
-            det = det3
+            det = replace(det3, side_blur_px=tuple(
+                float(v) for v in widths[_side_match(corners, det3.corners_px)]))
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
     return det

@@ -33,7 +33,7 @@ from scipy.special import ndtr
 
 from alignd.vision.edges import EdgePoints, adaptive_slopes, segment_median
 
-__all__ = ["fit_crossings", "step_response"]
+__all__ = ["fit_crossings", "fit_crossings_blur", "step_response"]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _TAILS = 3
@@ -238,38 +238,57 @@ def _edge_slopes(rows: _Rows, n_edges: int) -> np.ndarray:
 def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int = 5,
                   iterations: int = 2, max_half_width: int = 10) -> list[EdgePoints]:
     """Refine the area-method crossings of straight edges (one EdgePoints each) by the
+    profile fit, all edges in one batch; see :func:`fit_crossings_blur`."""
+    return fit_crossings_blur(gray, edges, half_width=half_width, iterations=iterations,
+                              max_half_width=max_half_width)[0]
+
+
+def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int = 5,
+                       iterations: int = 2, max_half_width: int = 10,
+                       blur: np.ndarray | None = None) -> tuple[list[EdgePoints], np.ndarray]:
+    """Refine the area-method crossings of straight edges (one EdgePoints each) by the
     profile fit, all edges in one batch (every step is a few array operations for all the
     columns of all the edges together: the cost is that of the arithmetic, not of the
-    calls).
+    calls); returns the refined crossings and each edge's Gaussian width (NaN where the
+    edge had too few crossings).
 
-    Each edge's Gaussian width is the median of per-column fits of a few of its columns;
-    the window is widened (up to ``max_half_width``) to hold the whole transition and the
-    tails beyond it, and the ends of each edge trimmed as much. Columns whose fit left the
-    window's middle are dropped.
+    Each edge's Gaussian width is the median of per-column fits of a few of its columns,
+    or, given ``blur`` (one finite width per edge: a tracked frame's previous widths,
+    where its sides did not move), that width, which skips its estimate (a third of the
+    cost); the window is widened (up to ``max_half_width``) to hold the whole transition
+    and the tails beyond it, and the ends of each edge trimmed as much. Columns whose fit
+    left the window's middle are dropped.
     """
     empty = [EdgePoints(np.empty((0, 2)), np.empty(0), e.vertical) for e in edges]
+    widths = np.full(len(edges), np.nan)
     use = [i for i, e in enumerate(edges) if e.xy.shape[0] >= 8]
     if not use:
-        return empty
+        return empty, widths
     ne = len(use)
     flat = np.ascontiguousarray(gray).ravel()
     rows = _rows(gray, edges, use)
     slope = _edge_slopes(rows, ne)
     nu = 1.0 / np.hypot(1.0, slope)  # |normal . minor axis|
     wa, wb = nu, np.abs(slope) * nu  # the pixel's footprint across the edge: |n_x|, |n_y|
-    # the blur: a few columns of each edge (every n/8-th), width free
     x = np.arange(-half_width, half_width + 1, dtype=float)
-    P, centre, ok = _windows(flat, rows, half_width)
-    r1 = rows.take(ok)
-    b1, b2 = _tail_slopes(P, r1.edge, ne)
-    counts = np.bincount(r1.edge, minlength=ne)
-    pos = np.arange(r1.edge.size) - (np.cumsum(counts) - counts)[r1.edge]
-    sub = pos % np.maximum(counts // 8, 1)[r1.edge] == 0
-    ks = r1.edge[sub]
-    _, _, s_each = _fit(P[sub], x, (r1.c - centre)[sub], np.ones(ks.size), nu[ks], wa[ks],
-                        wb[ks], b1[sub], b2[sub], 4)
-    blur = np.nan_to_num(segment_median(s_each, ks, ne, upper=False), nan=1.0)
-    reach = (3.0 * blur + 0.5 * (wa + wb)) / nu  # transition, minor px
+    given = None if blur is None else np.asarray(blur, float)[use]
+    narrow = None
+    if given is not None and np.all(np.isfinite(given)):
+        blur_e = given
+    else:
+        # the blur: a few columns of each edge (every n/8-th), width free
+        P, centre, ok = _windows(flat, rows, half_width)
+        r1 = rows.take(ok)
+        b1, b2 = _tail_slopes(P, r1.edge, ne)
+        narrow = (P, centre, r1, b1, b2)
+        counts = np.bincount(r1.edge, minlength=ne)
+        pos = np.arange(r1.edge.size) - (np.cumsum(counts) - counts)[r1.edge]
+        sub = pos % np.maximum(counts // 8, 1)[r1.edge] == 0
+        ks = r1.edge[sub]
+        _, _, s_each = _fit(P[sub], x, (r1.c - centre)[sub], np.ones(ks.size), nu[ks],
+                            wa[ks], wb[ks], b1[sub], b2[sub], 4)
+        blur_e = np.nan_to_num(segment_median(s_each, ks, ne, upper=False), nan=1.0)
+    reach = (3.0 * blur_e + 0.5 * (wa + wb)) / nu  # transition, minor px
     hw = int(min(max(half_width, math.ceil(float(reach.max())) + _TAILS), max_half_width))
     if hw > half_width:
         # a wider window reaches further toward the corners: trim the ends as much
@@ -282,12 +301,20 @@ def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int 
         P, centre, ok = _windows(flat, rows.take(inner), hw)
         r1 = rows.take(inner).take(ok)
         if r1.edge.size == 0:
-            return empty
+            return empty, widths
         b1, b2 = _tail_slopes(P, r1.edge, ne)
-    elif r1.edge.size == 0:
-        return empty
+    else:
+        if narrow is None:
+            P, centre, ok = _windows(flat, rows, half_width)
+            r1 = rows.take(ok)
+            b1, b2 = _tail_slopes(P, r1.edge, ne)
+        else:
+            P, centre, r1, b1, b2 = narrow
+        if r1.edge.size == 0:
+            return empty, widths
+    widths[use] = blur_e
     geo = np.column_stack([slope, nu, wa, wb])
-    u, D, misfit = _fit_tabulated(P, x, r1.c - centre, r1.edge, blur, geo, b1, b2,
+    u, D, misfit = _fit_tabulated(P, x, r1.c - centre, r1.edge, blur_e, geo, b1, b2,
                                   iterations)
     good = np.isfinite(u) & (np.abs(u) < hw - _TAILS) & (np.abs(D) > 1e-6)
     # a column the model does not fit (a hole, a screw or a shadow's edge in its window)
@@ -301,4 +328,4 @@ def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int 
         vertical = edges[i].vertical
         xy = np.column_stack([q, t]) if vertical else np.column_stack([t, q])
         out[i] = EdgePoints(xy, r1.contrast[sel], vertical)
-    return out
+    return out, widths
