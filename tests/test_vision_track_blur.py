@@ -53,7 +53,8 @@ def test_a_held_holder_reuses_the_blur_and_keeps_its_corners(
         assert calls[0] == before + 1  # the detection: its blur is reused
         assert reused.ok and fresh.ok
         assert reused.side_blur_px == prev.side_blur_px
-        got_r, got_f = order_corners(reused.corners_px, truth), order_corners(fresh.corners_px, truth)
+        got_r = order_corners(reused.corners_px, truth)
+        got_f = order_corners(fresh.corners_px, truth)
         # the same corners within a hundredth of the corner noise's bound
         assert np.max(np.linalg.norm(got_r - got_f, axis=1)) < 0.01
         err_reuse += list(np.linalg.norm(got_r - truth, axis=1))
