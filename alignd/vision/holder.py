@@ -125,7 +125,8 @@ def _quad_center(c: np.ndarray) -> np.ndarray:
 
 
 def _quad_angle(c: np.ndarray) -> float:
-    v = (c[1] - c[0]) / np.linalg.norm(c[1] - c[0]) + (c[2] - c[3]) / np.linalg.norm(c[2] - c[3])
+    a, b = c[1] - c[0], c[2] - c[3]
+    v = a / math.hypot(a[0], a[1]) + b / math.hypot(b[0], b[1])
     return math.degrees(math.atan2(v[1], v[0]))
 
 
@@ -425,7 +426,7 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
         if edge_ok[i - 1] and edge_ok[i] and a is not None and b is not None:
             p = intersect(a, b)
             out[i] = p
-            sig[i] = math.hypot(a.point_sigma(p), b.point_sigma(p))
+            sig[i] = math.hypot(_point_sigma(a, p), _point_sigma(b, p))
     corner_ok = np.all(np.isfinite(out), axis=1)
     ok = bool(corner_ok.all())
     center = np.full(2, np.nan)
@@ -444,8 +445,8 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
         else:
             center = _quad_center(out)
             angle = _quad_angle(out)
-            size = (float((np.linalg.norm(out[1] - out[0]) + np.linalg.norm(out[2] - out[3])) / 2),
-                    float((np.linalg.norm(out[2] - out[1]) + np.linalg.norm(out[3] - out[0])) / 2))
+            side = [math.hypot(*(out[(k + 1) % 4] - out[k])) for k in range(4)]
+            size = ((side[0] + side[2]) / 2, (side[1] + side[3]) / 2)
             if expected_size_px is not None:
                 eL, eS = max(expected_size_px), min(expected_size_px)
                 L, S = max(size), min(size)
@@ -469,6 +470,14 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
                            polarity=pol, size_px=size, corner_ok=corner_ok,
                            edge_rms_px=tuple(ln.rms_px if ln else math.nan for ln in lines),
                            reason="; ".join(reasons), lines=tuple(lines))
+
+
+def _point_sigma(ln: Line, p: np.ndarray) -> float:
+    """:meth:`Line.point_sigma` in scalar arithmetic (it runs eight times a frame)."""
+    m = float(p[1] if ln.vertical else p[0])
+    c = ln.cov_ab
+    var = float(c[0, 0]) + m * (float(c[0, 1]) + float(c[1, 0])) + m * m * float(c[1, 1])
+    return math.sqrt(max(var, 0.0)) * abs(float(ln.n[0] if ln.vertical else ln.n[1]))
 
 
 def _outside_signs(lines: list[Line | None], corners: np.ndarray) -> list[int]:
