@@ -475,7 +475,7 @@ def top_rows(n_top: int, n_speed: int, seed: int) -> list[Part1Row]:
         *rows,
         _p1("top frames analysed per second, 1 core", f"{sp['fps']:.0f}", ">= 60",
             f"{sp['b_fps']:.0f} rect", sp["fps"] >= 60),
-        _p1("  ... tracking with the previous corners", f"{sp['fps_track']:.0f}", "(info)",
+        _p1("  ... tracking with the previous detection", f"{sp['fps_track']:.0f}", "(info)",
             "", None),
         _p1("render time per top frame (ms)", f"{sp['render_ms']:.1f}", "<= 50", "",
             sp["render_ms"] <= 50)]
