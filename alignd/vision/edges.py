@@ -27,7 +27,8 @@ from alignd.errors import VisionError
 __all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
            "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
            "coarse_edges_many", "edge_points",
-           "edge_points_many", "fit_line", "intersect", "segment_median", "sensor_full_scale"]
+           "edge_points_many", "fit_line", "intersect", "residual_correlation", "segment_median",
+           "sensor_full_scale"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -440,8 +441,14 @@ def coarse_edges_many(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndar
 
 
 def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
-             iterations: int = 4, min_sigma: float = 0.01) -> Line | None:
-    """Least-squares line minor = a + b * major with iterative robust rejection."""
+             iterations: int = 4, min_sigma: float = 0.01, huber: float | None = None,
+             contrast_weight: bool = False) -> Line | None:
+    """Least-squares line minor = a + b * major with iterative robust rejection.
+
+    ``huber`` (in robust sigmas) further down-weights the kept columns whose residual
+    exceeds it (iteratively reweighted least squares); ``contrast_weight`` weighs each
+    column by its contrast squared (a crossing's noise is the pixel noise over the step).
+    """
     n_pts = pts.xy.shape[0]
     if n_pts < min_points:
         return None
@@ -449,39 +456,54 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
     major, minor = pts.xy[:, k], pts.xy[:, 1 - k]
     m0 = float(major.mean())
     u = major - m0
-    uu, vv = u, minor
-    use: np.ndarray | None = None  # None: every point
+    if contrast_weight:
+        c2 = pts.contrast.astype(float) ** 2
+        w0 = c2 / max(float(np.mean(c2)), 1e-12)
+    else:
+        w0 = np.ones(n_pts)
+    w = w0
+    use = np.ones(n_pts, bool)
     a0 = b = 0.0
     res = minor
+    mad = 0.0
     for _ in range(iterations):
-        nu = uu.size
+        nu = int(np.count_nonzero(use))
         if nu < min_points:
             return None
-        um, vm = float(uu.mean()), float(vv.mean())
-        du = uu - um
-        b = float(du @ (vv - vm)) / max(float(du @ du), 1e-12)
+        ww = np.where(use, w, 0.0)
+        sw = float(ww.sum())
+        um, vm = float(ww @ u) / sw, float(ww @ minor) / sw
+        du = u - um
+        b = float((ww * du) @ (minor - vm)) / max(float((ww * du) @ du), 1e-12)
         a0 = vm - b * um
         res = minor - (a0 + b * u)
-        ru = res if use is None else res[use]
+        ru = res[use]
         mad = _median(np.abs(ru - _median(ru))) * 1.4826
         new = np.abs(res) < reject_sigma * max(mad, min_sigma)
-        same = bool(new.all()) if use is None else np.array_equal(new, use)
-        if same:
+        if huber is not None:
+            s = huber * max(mad, min_sigma)
+            nw = w0 * np.minimum(1.0, s / np.maximum(np.abs(res), 1e-12))
+            done = np.array_equal(new, use) and float(np.max(np.abs(nw - w))) < 1e-3
+            w = nw
+        else:
+            done = np.array_equal(new, use)
+        if done:
             break
         use = new
-        uu, vv = u[use], minor[use]
-    n_used = n_pts if use is None else int(np.count_nonzero(use))
+    n_used = int(np.count_nonzero(use))
     if n_used < min_points:
         return None
-    r = res if use is None else res[use]
-    uf = u if use is None else u[use]
-    s2 = float(r @ r) / max(n_used - 2, 1)
-    # covariance of (a, b) of the centred fit, by the 2 x 2 normal matrix's inverse
-    s_u, s_uu = float(uf.sum()), float(uf @ uf)
-    det = n_used * s_uu - s_u * s_u
+    ww = np.where(use, w, 0.0)
+    ww = ww / max(float(ww.sum()) / n_used, 1e-12)  # mean weight 1 over the used columns
+    r = res[use]
+    s2 = float(ww[use] @ (r * r)) / max(n_used - 2, 1)
+    # covariance of (a, b) of the centred fit, by the 2 x 2 (weighted) normal matrix's
+    # inverse
+    s_w, s_u, s_uu = float(ww.sum()), float(ww @ u), float(ww @ (u * u))
+    det = s_w * s_uu - s_u * s_u
     if abs(det) < 1e-12:
         return None
-    cov_c = (s2 / det) * np.array([[s_uu, -s_u], [-s_u, float(n_used)]])
+    cov_c = (s2 / det) * np.array([[s_uu, -s_u], [-s_u, s_w]])
     # back to a + b * major (un-centred)
     T = np.array([[1.0, -m0], [0.0, 1.0]])
     cov_ab = T @ cov_c @ T.T
@@ -490,8 +512,8 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
     # vertical: x - b y = a; else: y - b x = a
     norm = math.hypot(1.0, b)
     nv = np.array([1.0, -b]) / norm if pts.vertical else np.array([-b, 1.0]) / norm
-    return Line(n=nv, d=a / norm, rms_px=math.sqrt(s2), n_points=n_pts, n_used=n_used,
-                cov_ab=cov_ab, vertical=pts.vertical,
+    return Line(n=nv, d=a / norm, rms_px=math.sqrt(float(r @ r) / max(n_used - 2, 1)),
+                n_points=n_pts, n_used=n_used, cov_ab=cov_ab, vertical=pts.vertical,
                 major_span=(float(major.min()), float(major.max())),
                 contrast=float(_median(pts.contrast)))
 
@@ -504,3 +526,30 @@ def intersect(l1: Line, l2: Line) -> np.ndarray:
     if abs(det) < 1e-9:
         return np.array([np.nan, np.nan])
     return np.array([(d * l1.d - b * l2.d) / det, (a * l2.d - c * l1.d) / det])
+
+
+def residual_correlation(ln: Line, pts: EdgePoints, max_lag: int = 8) -> float:
+    """Variance inflation of a line's fit for residuals correlated along the edge.
+
+    The fit's covariance assumes independent columns; JPEG blocks, texture, blur and a
+    shadow's penumbra make neighbouring crossings err together, so fewer columns count.
+    Returns 1 + 2 sum_k w_k rho_k over lags 1..max_lag (Bartlett weights w_k), the ratio of
+    the true variance of a mean of correlated residuals to the independent one (>= 1).
+    """
+    n = pts.xy.shape[0]
+    if n < 2 * max_lag + 4:
+        return 1.0
+    k = 1 if pts.vertical else 0
+    major, minor = pts.xy[:, k], pts.xy[:, 1 - k]
+    r = minor - ln.minor_at(major)
+    med = float(_median(r))
+    s = max(float(_median(np.abs(r - med))) * 1.4826, 1e-6)
+    r = np.clip(r - med, -3.5 * s, 3.5 * s)  # outlying columns the fit rejected
+    r = r - r.mean()
+    v = float(r @ r)
+    if v <= 0.0:
+        return 1.0
+    f = 1.0
+    for lag in range(1, max_lag + 1):
+        f += 2.0 * (1.0 - lag / (max_lag + 1)) * float(r[:-lag] @ r[lag:]) / v
+    return max(f, 1.0)
