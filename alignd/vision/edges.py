@@ -441,14 +441,8 @@ def coarse_edges_many(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndar
 
 
 def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
-             iterations: int = 4, min_sigma: float = 0.01, huber: float | None = None,
-             contrast_weight: bool = False) -> Line | None:
-    """Least-squares line minor = a + b * major with iterative robust rejection.
-
-    ``huber`` (in robust sigmas) further down-weights the kept columns whose residual
-    exceeds it (iteratively reweighted least squares); ``contrast_weight`` weighs each
-    column by its contrast squared (a crossing's noise is the pixel noise over the step).
-    """
+             iterations: int = 4, min_sigma: float = 0.01) -> Line | None:
+    """Least-squares line minor = a + b * major with iterative robust rejection."""
     n_pts = pts.xy.shape[0]
     if n_pts < min_points:
         return None
@@ -456,54 +450,39 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
     major, minor = pts.xy[:, k], pts.xy[:, 1 - k]
     m0 = float(major.mean())
     u = major - m0
-    if contrast_weight:
-        c2 = pts.contrast.astype(float) ** 2
-        w0 = c2 / max(float(np.mean(c2)), 1e-12)
-    else:
-        w0 = np.ones(n_pts)
-    w = w0
-    use = np.ones(n_pts, bool)
+    uu, vv = u, minor
+    use: np.ndarray | None = None  # None: every point
     a0 = b = 0.0
     res = minor
-    mad = 0.0
     for _ in range(iterations):
-        nu = int(np.count_nonzero(use))
+        nu = uu.size
         if nu < min_points:
             return None
-        ww = np.where(use, w, 0.0)
-        sw = float(ww.sum())
-        um, vm = float(ww @ u) / sw, float(ww @ minor) / sw
-        du = u - um
-        b = float((ww * du) @ (minor - vm)) / max(float((ww * du) @ du), 1e-12)
+        um, vm = float(uu.mean()), float(vv.mean())
+        du = uu - um
+        b = float(du @ (vv - vm)) / max(float(du @ du), 1e-12)
         a0 = vm - b * um
         res = minor - (a0 + b * u)
-        ru = res[use]
+        ru = res if use is None else res[use]
         mad = _median(np.abs(ru - _median(ru))) * 1.4826
         new = np.abs(res) < reject_sigma * max(mad, min_sigma)
-        if huber is not None:
-            s = huber * max(mad, min_sigma)
-            nw = w0 * np.minimum(1.0, s / np.maximum(np.abs(res), 1e-12))
-            done = np.array_equal(new, use) and float(np.max(np.abs(nw - w))) < 1e-3
-            w = nw
-        else:
-            done = np.array_equal(new, use)
-        if done:
+        same = bool(new.all()) if use is None else np.array_equal(new, use)
+        if same:
             break
         use = new
-    n_used = int(np.count_nonzero(use))
+        uu, vv = u[use], minor[use]
+    n_used = n_pts if use is None else int(np.count_nonzero(use))
     if n_used < min_points:
         return None
-    ww = np.where(use, w, 0.0)
-    ww = ww / max(float(ww.sum()) / n_used, 1e-12)  # mean weight 1 over the used columns
-    r = res[use]
-    s2 = float(ww[use] @ (r * r)) / max(n_used - 2, 1)
-    # covariance of (a, b) of the centred fit, by the 2 x 2 (weighted) normal matrix's
-    # inverse
-    s_w, s_u, s_uu = float(ww.sum()), float(ww @ u), float(ww @ (u * u))
-    det = s_w * s_uu - s_u * s_u
+    r = res if use is None else res[use]
+    uf = u if use is None else u[use]
+    s2 = float(r @ r) / max(n_used - 2, 1)
+    # covariance of (a, b) of the centred fit, by the 2 x 2 normal matrix's inverse
+    s_u, s_uu = float(uf.sum()), float(uf @ uf)
+    det = n_used * s_uu - s_u * s_u
     if abs(det) < 1e-12:
         return None
-    cov_c = (s2 / det) * np.array([[s_uu, -s_u], [-s_u, s_w]])
+    cov_c = (s2 / det) * np.array([[s_uu, -s_u], [-s_u, float(n_used)]])
     # back to a + b * major (un-centred)
     T = np.array([[1.0, -m0], [0.0, 1.0]])
     cov_ab = T @ cov_c @ T.T
@@ -512,8 +491,8 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
     # vertical: x - b y = a; else: y - b x = a
     norm = math.hypot(1.0, b)
     nv = np.array([1.0, -b]) / norm if pts.vertical else np.array([-b, 1.0]) / norm
-    return Line(n=nv, d=a / norm, rms_px=math.sqrt(float(r @ r) / max(n_used - 2, 1)),
-                n_points=n_pts, n_used=n_used, cov_ab=cov_ab, vertical=pts.vertical,
+    return Line(n=nv, d=a / norm, rms_px=math.sqrt(s2), n_points=n_pts, n_used=n_used,
+                cov_ab=cov_ab, vertical=pts.vertical,
                 major_span=(float(major.min()), float(major.max())),
                 contrast=float(_median(pts.contrast)))
 
