@@ -507,28 +507,24 @@ def intersect(l1: Line, l2: Line) -> np.ndarray:
     return np.array([(d * l1.d - b * l2.d) / det, (a * l2.d - c * l1.d) / det])
 
 
-def residual_correlation(ln: Line, pts: EdgePoints, max_lag: int = 8) -> float:
+def residual_correlation(ln: Line, pts: EdgePoints, block: int = 8) -> float:
     """Variance inflation of a line's fit for residuals correlated along the edge.
 
     The fit's covariance assumes independent columns; JPEG blocks, texture, blur and a
     shadow's penumbra make neighbouring crossings err together, so fewer columns count.
-    Returns 1 + 2 sum_k w_k rho_k over lags 1..max_lag (Bartlett weights w_k), the ratio of
-    the true variance of a mean of correlated residuals to the independent one (>= 1).
+    Batch means: ``block`` times the variance of the residuals' means over runs of
+    ``block`` columns, over the residuals' variance (1 for independent columns; >= 1).
     """
-    n = pts.xy.shape[0]
-    if n < 2 * max_lag + 4:
+    n = pts.xy.shape[0] // block * block
+    if n < 4 * block:
         return 1.0
     k = 1 if pts.vertical else 0
-    major, minor = pts.xy[:, k], pts.xy[:, 1 - k]
-    r = minor - ln.minor_at(major)
-    med = float(_median(r))
-    s = max(float(_median(np.abs(r - med))) * 1.4826, 1e-6)
-    r = np.clip(r - med, -3.5 * s, 3.5 * s)  # outlying columns the fit rejected
+    r = pts.xy[:n, 1 - k] - ln.minor_at(pts.xy[:n, k])
+    lim = 3.5 * max(ln.rms_px, 1e-6)
+    r = np.clip(r, -lim, lim)  # outlying columns the fit rejected
     r = r - r.mean()
     v = float(r @ r)
     if v <= 0.0:
         return 1.0
-    f = 1.0
-    for lag in range(1, max_lag + 1):
-        f += 2.0 * (1.0 - lag / (max_lag + 1)) * float(r[:-lag] @ r[lag:]) / v
-    return max(f, 1.0)
+    m = r.reshape(-1, block).mean(axis=1)
+    return max(block * block * float(m @ m) / v, 1.0)
