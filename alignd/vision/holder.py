@@ -405,8 +405,8 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
     fit_sig = np.full(4, np.nan)
     # the fit's covariance counts the columns as independent: scaled up by how much its
     # residuals correlate along the side (JPEG blocks, texture, penumbrae)
-    infl = [residual_correlation(ln, _ideal(pts, lens)) if ln is not None else 1.0
-            for ln, pts in sides]
+    infl = [residual_correlation(ln, _ideal(pts, lens)) if ln is not None and good else 1.0
+            for (ln, pts), good in zip(sides, edge_ok, strict=True)]
     for i in range(4):
         a, b = lines[i - 1], lines[i]
         if edge_ok[i - 1] and edge_ok[i] and a is not None and b is not None:
