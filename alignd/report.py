@@ -553,12 +553,29 @@ def draw_convergence(run: dict[str, Any], width: int = WIDTH - PLOT_H, height: i
     return img
 
 
+def precheck_note(result: dict[str, Any]) -> str | None:
+    """The pre-checks' readings in one line (the side camera's tilt with its standard
+    uncertainty, the top camera's rim eccentricity), or None when neither ran."""
+    bits = []
+    tilt, u = result.get("tilt_deg"), result.get("tilt_u_deg")
+    if isinstance(tilt, (int, float)):
+        unc = f" +/- {u:.4f}" if isinstance(u, (int, float)) else ""
+        bits.append(f"sample tilt {tilt:+.4f}{unc} deg (u, k=1)" if unc
+                    else f"sample tilt {tilt:+.4f} deg")
+    e = result.get("eccentricity")
+    if isinstance(e, (int, float)):
+        bits.append(f"top-camera rim eccentricity {e:.4f}")
+    return f"pre-checks: {'; '.join(bits)}" if bits else None
+
+
 def report_notes(run: dict[str, Any]) -> list[str]:
-    """The text block's lines: the verdict's reason (the decision rule and the uncertainty
-    budget have their own panel, ``draw_verdict``)."""
+    """The text block's lines: the verdict's reason and the pre-checks' readings (the
+    decision rule and the uncertainty budget have their own panel, ``draw_verdict``)."""
     result = run.get("result") or {}
     reason = run.get("reason") or result.get("reason")
-    return [f"verdict: {run.get('verdict') or result.get('verdict')}: {reason}"] if reason else []
+    lines = [f"verdict: {run.get('verdict') or result.get('verdict')}: {reason}"] if reason else []
+    pre = precheck_note(result)
+    return [*lines, pre] if pre else lines
 
 
 def _wrap(text: str, width_px: int, size: float) -> list[str]:

@@ -110,3 +110,16 @@ def test_report_carries_the_decision_rule_budget_and_reason() -> None:
                          + report.NOTES_H, report.WIDTH, 3)
     notes = img[-report.NOTES_H:]
     assert (notes < 100).any()  # the text is there
+
+
+def test_report_notes_give_the_prechecks_readings() -> None:
+    run = _run([(1.0, 0.0)])
+    run["result"].update(tilt_deg=0.3002, tilt_u_deg=0.00012, eccentricity=0.0094)
+    assert report.report_notes(run) == [
+        "verdict: aligned: ok",
+        "pre-checks: sample tilt +0.3002 +/- 0.0001 deg (u, k=1); "
+        "top-camera rim eccentricity 0.0094"]
+    run["result"].update(tilt_u_deg=None, eccentricity=None)
+    assert report.report_notes(run)[1] == "pre-checks: sample tilt +0.3002 deg"
+    run["result"].update(tilt_deg=None)
+    assert report.report_notes(run) == ["verdict: aligned: ok"]

@@ -101,6 +101,7 @@ class _State:
     decision: Decision | None = None
     tilt_deg: float | None = None
     tilt_u_deg: float | None = None  # its standard uncertainty (k = 1)
+    eccentricity: float | None = None  # the top camera's rim pre-check
     warnings: list[str] = field(default_factory=list)
     history: list[dict[str, Any]] = field(default_factory=list)
     calibration: Calibration | None = None
@@ -231,7 +232,7 @@ class _Run:
                                                   float(final.offset_um[1])),
             U_um=None if final is None else final.U_um,
             iterations=self.st.iterations, sweeps=self.st.sweeps, tilt_deg=self.st.tilt_deg,
-            tilt_u_deg=self.st.tilt_u_deg,
+            tilt_u_deg=self.st.tilt_u_deg, eccentricity=self.st.eccentricity,
             yaw_deg=None if final is None else final.yaw_deg, config_error=config_error,
             budget=None if final is None else final.budget.to_dict(),
             decision=None if final is None else self._decision(final).to_dict())
@@ -581,6 +582,7 @@ class _Run:
             self._emit("precheck", "top-camera eccentricity")
             try:
                 e = self.tools.eccentricity(top.grab(after=top.clock.now()))
+                self.st.eccentricity = e
                 self.recorder.event(f"pre-check: top-camera rim eccentricity {e:.4f}")
                 if e > pc.max_eccentricity:
                     problems.append(("fault", f"top-camera eccentricity {e:.3f} exceeds "

@@ -3,8 +3,9 @@
 Contract keys: ``run_id``, ``verdict``, ``offset_um`` ([x, y], turntable frame),
 ``offset_norm_um``, ``U_um`` (expanded uncertainty, k = 2), ``iterations``, ``tilt_deg``,
 ``yaw_deg``, ``reason``; ``tilt_u_deg`` (the tilt's standard uncertainty, k = 1, from
-the pre-check's frames); since the decisive-verdicts release also ``sweeps`` (measurements;
-``iterations`` counts correction moves), ``decision`` (the rule, guard band, zones and the
+the pre-check's frames), ``eccentricity`` (the top camera's rim pre-check); since the
+decisive-verdicts release also ``sweeps`` (measurements; ``iterations`` counts correction
+moves), ``decision`` (the rule, guard band, zones and the
 operator's line) and ``budget`` (the uncertainty budget, um); on a simulated rig also
 ``truth`` (``offset_um``, ``offset_norm_um``) read from the simulator after the run, never
 by the loop.
@@ -46,6 +47,7 @@ class RunResult:
     sweeps: int = 0  # measurement sweeps
     tilt_deg: float | None = None
     tilt_u_deg: float | None = None  # standard uncertainty of tilt_deg (k = 1)
+    eccentricity: float | None = None  # the top camera's rim pre-check (apparent e)
     yaw_deg: float | None = None
     truth: dict[str, Any] | None = None
     config_error: bool = False  # the fault was a config problem (exit code 2)
@@ -83,6 +85,7 @@ class RunResult:
             "iterations": int(self.iterations),
             "tilt_deg": _num(self.tilt_deg, 4),
             "tilt_u_deg": _num(self.tilt_u_deg, 5),
+            "eccentricity": _num(self.eccentricity, 4),
             "yaw_deg": _num(self.yaw_deg, 4),
             "reason": self.reason,
             "sweeps": int(self.sweeps),

@@ -27,7 +27,8 @@ from alignd.errors import VisionError
 __all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
            "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
            "coarse_edges_many", "edge_points",
-           "edge_points_many", "fit_line", "intersect", "segment_median", "sensor_full_scale"]
+           "edge_points_many", "fit_line", "intersect", "residual_correlation", "segment_median",
+           "sensor_full_scale"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -504,3 +505,26 @@ def intersect(l1: Line, l2: Line) -> np.ndarray:
     if abs(det) < 1e-9:
         return np.array([np.nan, np.nan])
     return np.array([(d * l1.d - b * l2.d) / det, (a * l2.d - c * l1.d) / det])
+
+
+def residual_correlation(ln: Line, pts: EdgePoints, block: int = 8) -> float:
+    """Variance inflation of a line's fit for residuals correlated along the edge.
+
+    The fit's covariance assumes independent columns; JPEG blocks, texture, blur and a
+    shadow's penumbra make neighbouring crossings err together, so fewer columns count.
+    Batch means: ``block`` times the variance of the residuals' means over runs of
+    ``block`` columns, over the residuals' variance (1 for independent columns; >= 1).
+    """
+    n = pts.xy.shape[0] // block * block
+    if n < 4 * block:
+        return 1.0
+    k = 1 if pts.vertical else 0
+    r = pts.xy[:n, 1 - k] - ln.minor_at(pts.xy[:n, k])
+    lim = 3.5 * max(ln.rms_px, 1e-6)
+    r = np.clip(r, -lim, lim)  # outlying columns the fit rejected
+    r = r - r.mean()
+    v = float(r @ r)
+    if v <= 0.0:
+        return 1.0
+    m = r.reshape(-1, block).mean(axis=1)
+    return max(block * block * float(m @ m) / v, 1.0)

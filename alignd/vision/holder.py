@@ -44,6 +44,7 @@ from alignd.vision.edges import (
     edge_points_many,
     fit_line,
     intersect,
+    residual_correlation,
 )
 from alignd.vision.holder_search import search_candidates
 from alignd.vision.lens import Lens
@@ -53,6 +54,10 @@ __all__ = ["HolderDetection", "YawMeasurement", "measure_yaw", "order_corners", 
 
 log = logging.getLogger(__name__)
 
+# a whole side's common-mode error (px, normal to it), on top of its fit's covariance:
+# calibrated on the randomised corpus so that corner errors over corner_sigma_px have an
+# RMS near 1 (see tests/test_vision_holder_sigma.py)
+_SIDE_COMMON_PX = 0.02
 _AGREE_PX, _AGREE_SIGMA = 0.05, 3.0  # profile vs area corners: allowed difference
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
@@ -67,12 +72,17 @@ class HolderDetection:
     center_px: np.ndarray
     angle_deg: float
     quality: float  # 0..1, 1 = every column used, corners well determined
-    corner_sigma_px: float  # estimated standard error of a corner (from the line fits)
+    # estimated standard error of a corner: the line fits' (inflated for residuals that
+    # correlate along a side) plus each side's common-mode error
+    corner_sigma_px: float
     polarity: str  # "dark": holder darker than its surroundings, or "light"
     size_px: tuple[float, float]  # mean length of sides 0-1/3-2 and 1-2/0-3
     corner_ok: np.ndarray = field(default_factory=lambda: np.zeros(4, bool))
     edge_rms_px: tuple[float, ...] = ()
     reason: str = ""
+    # the line fits' own standard error of a corner (independent columns, no common-mode
+    # term): the scale the area and profile methods' corners are compared on
+    fit_sigma_px: float = math.nan
     lines: tuple[Line | None, ...] = ()
     # each side's Gaussian edge width (px) found by the profile fit, side k running from
     # corner k to corner k + 1; () when the profile fit was not used
@@ -372,7 +382,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         # the window) and the model-free area method's corners stand
         moved = float(np.max(np.linalg.norm(det3.corners_px - det.corners_px, axis=1))) \
             if det3.ok else math.inf
-        if moved <= _AGREE_PX + _AGREE_SIGMA * det.corner_sigma_px:
+        if moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px:
             det = replace(det3, side_blur_px=tuple(
                 float(v) for v in widths[_side_match(corners, det3.corners_px)]))
     if polarity is not None and det.ok and pol != polarity:
@@ -421,12 +431,22 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
         edge_ok.append(good)
     out = np.full((4, 2), np.nan)
     sig = np.full(4, np.nan)
+    fit_sig = np.full(4, np.nan)
+    # the fit's covariance counts the columns as independent: scaled up by how much its
+    # residuals correlate along the side (JPEG blocks, texture, penumbrae)
+    infl = [residual_correlation(ln, _ideal(pts, lens)) if ln is not None and good else 1.0
+            for (ln, pts), good in zip(sides, edge_ok, strict=True)]
     for i in range(4):
         a, b = lines[i - 1], lines[i]
         if edge_ok[i - 1] and edge_ok[i] and a is not None and b is not None:
             p = intersect(a, b)
             out[i] = p
-            sig[i] = math.hypot(_point_sigma(a, p), _point_sigma(b, p))
+            # plus the error common to a whole side (its illumination slope's and blur's
+            # noise, the same in every column), in each side's normal direction
+            sa, sb = _point_sigma(a, p), _point_sigma(b, p)
+            fit_sig[i] = math.hypot(sa, sb)
+            sig[i] = math.sqrt(infl[i - 1] * sa ** 2 + infl[i] * sb ** 2
+                               + 2 * _SIDE_COMMON_PX ** 2)
     corner_ok = np.all(np.isfinite(out), axis=1)
     ok = bool(corner_ok.all())
     center = np.full(2, np.nan)
@@ -460,16 +480,18 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
         out = lens.distort(out)
         center = lens.distort(center[None])[0]
     corner_sigma = float(np.nanmax(sig)) if np.any(np.isfinite(sig)) else math.nan
+    fit_sigma = float(np.nanmax(fit_sig)) if np.any(np.isfinite(fit_sig)) else math.nan
     quality = min(frac) if frac else 0.0
-    if math.isfinite(corner_sigma):
-        quality *= max(0.0, 1.0 - corner_sigma / 0.5)
+    if math.isfinite(fit_sigma):
+        quality *= max(0.0, 1.0 - fit_sigma / 0.5)
     if hint is not None and ok:
         out = order_corners(out, hint)
     return HolderDetection(ok=ok, corners_px=out, center_px=center, angle_deg=angle,
                            quality=float(quality) if ok else 0.0, corner_sigma_px=corner_sigma,
                            polarity=pol, size_px=size, corner_ok=corner_ok,
                            edge_rms_px=tuple(ln.rms_px if ln else math.nan for ln in lines),
-                           reason="; ".join(reasons), lines=tuple(lines))
+                           reason="; ".join(reasons), lines=tuple(lines),
+                           fit_sigma_px=fit_sigma)
 
 
 def _point_sigma(ln: Line, p: np.ndarray) -> float:

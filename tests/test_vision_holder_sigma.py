@@ -1,0 +1,58 @@
+"""The holder's corner_sigma_px is an honest standard error: on seeded corpus scenes the
+corner errors over it have an RMS near 1 (the line fits' covariance alone, which counts
+every column as independent and leaves out the error common to a whole side, gave ~2.5)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from alignd.vision.edges import EdgePoints, fit_line, residual_correlation
+from alignd.vision.holder import order_corners, track_holder
+from alignd.vision.lens import Lens
+from drivers.sim.scenes import TOP_CATEGORIES, random_top_scene
+
+SEED, N_PER_CATEGORY = 4711, 3
+
+
+def _pulls() -> np.ndarray:
+    """Per scene: the largest corner error over the reported corner_sigma_px."""
+    rng = np.random.default_rng(SEED)
+    out = []
+    for _ in range(N_PER_CATEGORY):
+        for cat in TOP_CATEGORIES:
+            sc = random_top_scene(rng, cat)
+            lens = Lens(sc.lens[0], sc.lens[1], sc.lens[2]) if sc.lens else None
+            det = track_holder(sc.image, expected_size_px=sc.expected_size_px, lens=lens)
+            assert det.ok, (cat, det.reason)
+            truth = order_corners(sc.corners_px)
+            e = np.linalg.norm(order_corners(det.corners_px, truth) - truth, axis=1)
+            assert det.fit_sigma_px < det.corner_sigma_px
+            out.append(float(e.max()) / det.corner_sigma_px)
+    return np.array(out)
+
+
+def test_corner_sigma_matches_the_corner_errors() -> None:
+    pulls = _pulls()
+    rms = float(np.sqrt(np.mean(pulls ** 2)))
+    assert 0.6 <= rms <= 1.5, pulls.round(2)
+    assert pulls.max() < 4.0, pulls.round(2)
+
+
+def _points(res: np.ndarray) -> EdgePoints:
+    x = np.arange(res.size, dtype=float)
+    return EdgePoints(np.column_stack([x, 50.0 + 0.01 * x + res]), np.full(res.size, 80.0),
+                      False)
+
+
+def test_residual_correlation_counts_correlated_columns_once() -> None:
+    rng = np.random.default_rng(3)
+    iid = rng.normal(0.0, 0.05, 400)
+    ln = fit_line(_points(iid))
+    assert ln is not None
+    assert 1.0 <= residual_correlation(ln, _points(iid)) < 1.3
+    # errors shared by blocks of 8 columns (JPEG blocks): the fit's variance is too small
+    # by about the block length
+    blocks = np.repeat(rng.normal(0.0, 0.05, 50), 8) + rng.normal(0.0, 0.01, 400)
+    ln = fit_line(_points(blocks))
+    assert ln is not None
+    assert residual_correlation(ln, _points(blocks)) > 3.0
