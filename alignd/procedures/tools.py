@@ -166,7 +166,9 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     side_cfg = cfg.side_camera if cfg is not None else None
     pole_roi = side_cfg.pole_roi_px if side_cfg else None
     sample_roi = side_cfg.sample_roi_px if side_cfg else None
-    last: list[np.ndarray] = []  # the previous frame's corners (tracking seed)
+    # the previous frame's detection: its corners seed the search and, where the holder
+    # has not moved, its sides' blur widths are reused (track_holder)
+    last: list[vision.HolderDetection] = []
 
     def track(frame: Frame) -> Corners:
         hint = last[0] if last else None
@@ -179,7 +181,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
         if out.ok and expected is not None:
             out = size_checked(out, expected)
         if out.ok:
-            last[:] = [out.corners_px]
+            last[:] = [det]
             # the previous frame seeds the search, not the corners' order: that stays the
             # image's own (top-left first), as the sweeps and the calibration expect; a
             # seed from the end of the last sweep (up to twice the sweep away) would rotate

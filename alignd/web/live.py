@@ -13,7 +13,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import cv2
 import numpy as np
@@ -21,6 +21,9 @@ import numpy as np
 from alignd.config import AligndConfig
 from alignd.report import to_bgr8
 from alignd.web.frames import LiveFrame, LiveFrames
+
+if TYPE_CHECKING:
+    from alignd.vision import HolderDetection
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +74,7 @@ class LiveView:
         self._cache: dict[str, tuple[tuple[Any, ...], bytes, dict[str, Any]]] = {}
         self._centre_key: tuple[Any, ...] | None = None
         self._centre: Centre | None = None
-        self._hint: np.ndarray | None = None
+        self._hint: HolderDetection | None = None  # the previous frame's, to track from
 
     def centre(self) -> Centre | None:
         """The newest measured centre (re-read only when a run starts, ends or iterates)."""
@@ -146,7 +149,7 @@ class LiveView:
             info["holder"] = f"not found ({exc})"
             corners = None
         if corners is not None:
-            self._hint = corners
+            self._hint = det
             info["holder"] = "tracked"
             cv2.polylines(small, [np.array([pt(c) for c in corners], np.int32)], True,
                           HOLDER_COLOUR, 2, cv2.LINE_AA)
