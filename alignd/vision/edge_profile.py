@@ -30,6 +30,8 @@ from alignd.vision.edges import Line
 __all__ = ["ProfileFit", "Spread", "fit_vertical_edge"]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+# one JPEG block row: the unit of the per-band error terms (side.py merges them further)
+BAND_ROWS = 8
 
 
 @dataclass(frozen=True)
@@ -45,11 +47,11 @@ class ProfileFit:
     rows: np.ndarray  # the rows used
     contrast: float  # median right minus left level (DN)
     spread: Spread = "optics"
-    # the 8-row bands (row // 8) used and each band's share of the angle's error (deg): the
-    # terms whose sum of squares is the cluster-robust variance. Frames of one view coded
-    # on the same block grid repeat part of their coding error; summing these per band
-    # over the frames before squaring keeps that part from averaging away (see
-    # :func:`alignd.vision.side.measure_tilt_frames`)
+    # the bands of BAND_ROWS rows (row // BAND_ROWS) used and each band's share of the
+    # angle's error (deg): terms whose sum of squares is a cluster-robust variance. Frames
+    # of one view coded on the same block grid repeat part of their coding error; summing
+    # these per band over the frames before squaring keeps that part from averaging away
+    # (see :func:`alignd.vision.side.measure_tilt_frames`)
     bands: np.ndarray | None = None
     band_angle_deg: np.ndarray | None = None
 
@@ -214,7 +216,7 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     dof = max(n_use * m - 3 - 4 * n_use, 1)
     s2 = float(np.sum(r ** 2)) / dof
     cov = _cluster_cov(J, r, rows[use] // 8, n_use * m, dof)[:2, :2]
-    bands, infl = _band_influence(J, r, rows[use] // 8, n_use * m, dof)
+    bands, infl = _band_influence(J, r, rows[use] // BAND_ROWS, n_use * m, dof)
     band_deg = -np.degrees(infl[:, 1]) / (1 + x[1] ** 2)  # angle = atan(-b)
     return ProfileFit(a=float(x[0]), b=float(x[1]), y_mid=y_mid, cov_ab=cov,
                       blur_px=float(x[2]), rms_dn=math.sqrt(s2), rows=rows[use],
