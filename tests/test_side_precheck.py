@@ -166,3 +166,22 @@ def test_profile_fit_replaces_an_area_method_line_that_is_off() -> None:
     got = _profiled(as_gray(sc.image), bad, [*m.pole_edges, *m.sample_edges], sc.pole_roi_px)
     assert got is not None and got.spread is not None
     assert got.angle_deg == pytest.approx(sc.pole_angle_deg, abs=0.003)
+
+
+def test_repeated_coding_error_does_not_average_away() -> None:
+    """JPEG codes each frame of a view on the same block grid, so part of its error repeats
+    from frame to frame. The extreme case, one frame sent N times, holds no more than that
+    frame: the pre-check's u must not shrink by sqrt N (it did: zero scatter, the fits'
+    own u over sqrt 8, and the bench's JPEG scenes had RMS |error| / u 1.7). Frames with
+    independent noise still gain from N."""
+    sc = random_side_scene(np.random.default_rng(11), "jpeg", frames=8)
+    rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
+    one = measure_tilt(sc.frames[0], **rois)
+    same = measure_tilt_frames([sc.frames[0]] * 8, **rois)
+    assert same.tilt_deg == pytest.approx(one.tilt_deg, abs=1e-4)  # tracked, not searched
+    assert same.u_deg >= 0.6 * one.sigma_deg  # was 1 / sqrt 8
+    clean = random_side_scene(np.random.default_rng(11), "full-height sample", frames=8)
+    rois = {"pole_roi_px": clean.pole_roi_px, "sample_roi_px": clean.sample_roi_px}
+    av = measure_tilt_frames(list(clean.frames), **rois)
+    u_fit = math.sqrt(np.mean([m.sigma_deg ** 2 for m in av.frames]) / 8)
+    assert av.u_deg <= 2.0 * u_fit

@@ -30,6 +30,8 @@ from alignd.vision.edges import Line
 __all__ = ["ProfileFit", "Spread", "fit_vertical_edge"]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+# one JPEG block row: the unit of the per-band error terms (side.py merges them further)
+BAND_ROWS = 8
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,13 @@ class ProfileFit:
     rows: np.ndarray  # the rows used
     contrast: float  # median right minus left level (DN)
     spread: Spread = "optics"
+    # the bands of BAND_ROWS rows (row // BAND_ROWS) used and each band's share of the
+    # angle's error (deg): terms whose sum of squares is a cluster-robust variance. Frames
+    # of one view coded on the same block grid repeat part of their coding error; summing
+    # these per band over the frames before squaring keeps that part from averaging away
+    # (see :func:`alignd.vision.side.measure_tilt_frames`)
+    bands: np.ndarray | None = None
+    band_angle_deg: np.ndarray | None = None
 
     @property
     def angle_deg(self) -> float:
@@ -207,9 +216,25 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     dof = max(n_use * m - 3 - 4 * n_use, 1)
     s2 = float(np.sum(r ** 2)) / dof
     cov = _cluster_cov(J, r, rows[use] // 8, n_use * m, dof)[:2, :2]
+    bands, infl = _band_influence(J, r, rows[use] // BAND_ROWS, n_use * m, dof)
+    band_deg = -np.degrees(infl[:, 1]) / (1 + x[1] ** 2)  # angle = atan(-b)
     return ProfileFit(a=float(x[0]), b=float(x[1]), y_mid=y_mid, cov_ab=cov,
                       blur_px=float(x[2]), rms_dn=math.sqrt(s2), rows=rows[use],
-                      contrast=float(np.median(coef[use, 2])), spread=spread)
+                      contrast=float(np.median(coef[use, 2])), spread=spread,
+                      bands=bands, band_angle_deg=band_deg)
+
+
+def _band_influence(D: np.ndarray, r: np.ndarray, cluster: np.ndarray, n_obs: int,
+                    dof: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each cluster's term (J^T J)^-1 s_g sqrt(n / dof) of the parameters (a, b, s): the
+    sandwich of :func:`_cluster_cov` is the sum of their outer products."""
+    J = D.reshape(-1, 3)
+    JtJi = np.linalg.inv(J.T @ J + 1e-12 * np.eye(3))
+    scores = np.einsum("nwk,nw->nk", D, r)
+    ids, inv = np.unique(cluster, return_inverse=True)
+    g = np.zeros((ids.size, 3))
+    np.add.at(g, inv, scores)
+    return ids, g @ JtJi * math.sqrt(n_obs / dof)
 
 
 def _jacobian_at(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray,
