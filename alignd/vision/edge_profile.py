@@ -125,14 +125,7 @@ def _gauss_newton(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray
     r = np.zeros_like(P)
     c = np.zeros((P.shape[0], 4))
     for it in range(iterations + 1):  # the last pass only evaluates J at the solution
-        u = cols - (p[0] + p[1] * yc)[:, None]
-        F, dFu, dFs, B = _basis(u, p[2], spread)
-        c = _solve_rows(B, P[..., None])[..., 0]
-        r = P - (B @ c[..., None])[..., 0]
-        # derivatives of the model B c with respect to a, b, s (c held)
-        da = -(c[:, 1:2] + c[:, 2:3] * dFu + c[:, 3:4] * (F + u * dFu))
-        D = np.stack([da, da * yc[:, None], (c[:, 2:3] + c[:, 3:4] * u) * dFs], axis=2)
-        D = D - B @ _solve_rows(B, D)
+        p, r, c, D = _jacobian_at(P, cols, yc, p, spread)
         J = D.reshape(-1, 3)  # r = P - model: dr/dp = -D, the step solves D dp = r
         JtJ = J.T @ J
         if it == iterations:
@@ -239,7 +232,8 @@ def _band_influence(D: np.ndarray, r: np.ndarray, cluster: np.ndarray, n_obs: in
 
 def _jacobian_at(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray,
                  spread: Spread) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Residuals (N, W) and the projected Jacobian (N, W, 3) at ``p`` (no step taken)."""
+    """Residuals (N, W), the per-row coefficients (N, 4) and the projected Jacobian
+    (N, W, 3) of the model B c with respect to a, b, s (c held) at ``p`` (no step taken)."""
     u = cols - (p[0] + p[1] * yc)[:, None]
     F, dFu, dFs, B = _basis(u, p[2], spread)
     c = _solve_rows(B, P[..., None])[..., 0]

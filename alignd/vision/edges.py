@@ -212,16 +212,9 @@ def adaptive_slopes(v: np.ndarray, seg: np.ndarray, n_seg: int, k: int) -> np.nd
     gs = _shrink(g_e, np.nan_to_num(mad) / np.sqrt(np.maximum(nk, 1.0)))[seg]
     if k <= 0:
         return gs
-    # the moving mean over +-k columns, truncated at each edge's ends (k <= (n - 1) / 2)
-    n = counts[seg]
-    ke = np.minimum(k, (n - 1) // 2)
-    st = starts[seg]
-    pos = np.arange(v.size) - st
-    lo, hi = np.maximum(pos - ke, 0), np.minimum(pos + ke, n - 1)
-    csum = np.concatenate(([0.0], np.cumsum(v)))
-    loc = (csum[st + hi + 1] - csum[st + lo]) / (hi - lo + 1)
+    loc = _segment_moving_mean(v, seg, counts, starts, k)
     sig = (mad / math.sqrt(2 * k + 1))[seg]
-    return np.where((n >= 3) & (np.abs(loc - g) > 4.0 * sig + 1e-9), loc, gs)
+    return np.where((counts[seg] >= 3) & (np.abs(loc - g) > 4.0 * sig + 1e-9), loc, gs)
 
 
 def _robust_mean_n(v: np.ndarray) -> tuple[float, int, float]:
