@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-import drivers.sim.scenes as scenes
 from alignd.errors import VisionError
 from alignd.vision.edge_profile import fit_vertical_edge
 from alignd.vision.side import measure_tilt, measure_tilt_frames
@@ -87,15 +86,11 @@ def test_more_frames_leave_the_corpus_as_it_was() -> None:
         assert s1.tilt_deg == s3.tilt_deg
 
 
-def test_side_scene_outlines_sit_at_their_truth(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.usefixtures("noise_free_scenes")
+def test_side_scene_outlines_sit_at_their_truth() -> None:
     """Noise-free, evenly lit: the pole's centre and the sample's edges where the truth
     says (drawing on the 4x wider grid put every outline 0.375 px left of its truth; the
     tilt, a difference of slopes, never saw it)."""
-    monkeypatch.setattr(scenes, "_light",
-                        lambda rng, shape, **kw: (np.ones(shape, np.float32), {}))
-    monkeypatch.setattr(scenes, "_texture",
-                        lambda rng, shape, scale, amp: np.zeros(shape, np.float32))
-    monkeypatch.setattr(scenes, "_finish", lambda img, rng, **kw: img)
     sc = random_side_scene(np.random.default_rng(5), "full-height sample")
     m = measure_tilt(sc.image)
     pole = float(np.mean([e.x_mid_px for e in m.pole_edges]))

@@ -12,7 +12,6 @@ from alignd.vision.holder import order_corners, track_holder
 from alignd.vision.lens import Lens
 from alignd.vision.rim import fit_rim
 from alignd.vision.side import SIGN_CONVENTION, measure_tilt
-from drivers.sim import scenes
 from drivers.sim.render import Polygon, Raster, coverage
 from drivers.sim.scenes import (
     SIDE_CATEGORIES,
@@ -146,15 +145,11 @@ def test_side_tilt_bound_per_category(cat: str) -> None:
         assert abs(err) <= 4 * m.sigma_deg + 0.0005, (cat, seed, err, m.sigma_deg)
 
 
-def test_side_defocus_leaves_no_bias(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.usefixtures("noise_free_scenes")
+def test_side_defocus_leaves_no_bias() -> None:
     """A noise-free, evenly lit scene defocused by sigma 1.33 px (lens blur, before the
     pixels): nothing but the method's own bias is left. The area method's window tails lie
     inside such a blur; its error followed the edges' sub-pixel phase (0.001 deg here)."""
-    monkeypatch.setattr(scenes, "_light",
-                        lambda rng, shape, **kw: (np.ones(shape, np.float32), {}))
-    monkeypatch.setattr(scenes, "_texture",
-                        lambda rng, shape, scale, amp: np.zeros(shape, np.float32))
-    monkeypatch.setattr(scenes, "_finish", lambda img, rng, **kw: img)
     sc = random_side_scene(np.random.default_rng(5), "full-height sample")
     assert sc.params["blur_px"] > 1.3
     m = measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
