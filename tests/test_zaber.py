@@ -628,3 +628,34 @@ def test_emulator_accel_in_the_manuals_units_with_its_own_range_check() -> None:
     assert emu.handle(b"/1 1 set accel 68804\n") == b"@01 1 RJ IDLE WR BADDATA\r\n"
     assert emu.handle(b"/1 1 set accel 0\n") == b"@01 1 RJ IDLE WR BADDATA\r\n"
     assert emu.handle(b"/1 1 get accel\n") == b"@01 1 OK IDLE WR 32767\r\n"
+
+
+class _TickingClock(ManualClock):
+    """Every reading moves time on: any instant between two reads inside one command's
+    handling is reached, deterministically (a loaded host's scheduling, without the load)."""
+
+    def __init__(self, tick: float) -> None:
+        super().__init__()
+        self.tick = tick
+
+    def now(self) -> float:
+        t = super().now()
+        self.advance(self.tick)
+        return t
+
+
+@pytest.mark.parametrize("start", [round(0.05 + 0.0137 * i, 4) for i in range(40)])
+def test_emulator_reply_never_says_idle_with_the_flags_of_a_homing_still_running(
+        start: float) -> None:
+    # CI failure (stop 18): "homing ended without a reference position: WR" - the reply's
+    # data was read before homing ended and its IDLE after, at a later clock reading.
+    clock = _TickingClock(tick=0.003)
+    cfg = x_config(role="z", address=1)
+    axes = {1: SimAxis("z", physics_for(cfg), clock, np.random.default_rng(1), start=start)}
+    emu = ZaberEmulator("platform", axes, clock)
+    assert b"OK BUSY WR" in emu.handle(b"/1 1 home\n")
+    for _ in range(10_000):
+        reply = emu.handle(b"/1 1 warnings\n")
+        if b" IDLE " in reply:
+            break
+    assert reply == b"@01 1 OK IDLE -- 00\r\n"

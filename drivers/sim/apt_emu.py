@@ -268,8 +268,8 @@ class AptEmulator(Emulator):
 
     def _status_block(self, chan: int, c: _Channel) -> bytes:
         """Status carried by 0x0491/0x0481 and by MOVE_COMPLETED/MOVE_STOPPED."""
-        pos = self._counter(c)
-        bits = self._bits(c)
+        bits = self._bits(c)  # before the position: a block never says "stopped" over a
+        pos = self._counter(c)  # position read before the stop (a later read is harmless)
         if self.model == "KDC101":
             vel = round(self._vel_units(c.max_vel, c.axis) * c.axis.p.counts_per_unit
                         * 2048 / 6e6) if c.axis.moving else 0

@@ -113,6 +113,7 @@ class _Device:
     comm_checksum: int = 0
     comm_alert: int = 0
     was_busy: bool = False
+    busy: bool = False  # what the reply to the command being handled says (BUSY/IDLE)
     limit_seen: tuple[bool, bool] = (False, False)
 
     @property
@@ -172,7 +173,7 @@ class ZaberEmulator(Emulator):
         busy = moving or dev.homing
         if dev.was_busy and not busy and dev.comm_alert:  # motion complete: alert
             self._alerts += self._line(dev, "!", f"{dev.number:02d} 1 IDLE {self._warn(dev)}")
-        dev.was_busy = busy
+        dev.was_busy = dev.busy = busy
         return busy
 
     def _flags(self, dev: _Device) -> list[str]:
@@ -195,7 +196,11 @@ class ZaberEmulator(Emulator):
         return (text + "\r\n").encode("ascii")
 
     def _reply(self, dev: _Device, axis: int, mid: int | None, ok: bool, data: str) -> bytes:
-        busy = self._update(dev)
+        """The reply's status and flags describe the instant of the command's ``_update``
+        (plus what the command itself started or stopped), as its data does: reading the
+        clock again here let a homing end between the data (``WR``) and the status
+        (``IDLE``), a reply no real device sends."""
+        busy = dev.busy
         head = f"{dev.number:02d} {axis}" + (f" {mid:02d}" if mid is not None else "")
         body = f"{head} {'OK' if ok else 'RJ'} {'BUSY' if busy else 'IDLE'} {self._warn(dev)} "
         return self._line(dev, "@", body + data)
@@ -253,6 +258,8 @@ class ZaberEmulator(Emulator):
         axis = header[1] if len(header) > 1 else 0
         mid = header[2] if len(header) > 2 else None
         self.note_command(" ".join(tokens).lower())
+        for dev in self.devices.values():
+            self._update(dev)  # one instant per message: data and status agree
         if not checksum_ok:  # every device rejects it, whatever the address
             return b"".join(self._reply(d, axis, mid if mid is not None and 0 <= mid <= 99
                                         else None, False, "BADDATA")
@@ -276,7 +283,6 @@ class ZaberEmulator(Emulator):
 
     # ---- commands -----------------------------------------------------------------
     def _execute(self, dev: _Device, axis: int, words: list[str]) -> tuple[bool, str]:
-        self._update(dev)
         if not words:
             return True, "0"
         cmd, args = words[0], words[1:]
@@ -298,7 +304,7 @@ class ZaberEmulator(Emulator):
             if dev.axis.moving or dev.homing:
                 dev.latched.add("NI")
             dev.axis.stop()
-            dev.homing = False
+            dev.homing = dev.busy = False
             return True, "0"
         if cmd == "warnings" and args in ([], ["clear"]):
             flags = self._flags(dev)
@@ -314,6 +320,7 @@ class ZaberEmulator(Emulator):
         else:
             dev.latched.discard("NI")
         dev.was_busy = True  # even a motion that ends at once is followed by an alert
+        dev.busy = True
 
     def _move(self, dev: _Device, args: list[str]) -> tuple[bool, str]:
         kind, rest = args[0], args[1:]
