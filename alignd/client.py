@@ -96,6 +96,8 @@ class RunResult:
     yaw_deg: float | None = None
     truth: dict[str, Any] | None = None
     tilt_u_deg: float | None = None  # standard uncertainty of tilt_deg (k = 1)
+    eccentricity: float | None = None  # the top camera's rim pre-check (apparent e)
+    eccentricity_u: float | None = None  # its standard uncertainty (k = 1)
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -117,7 +119,9 @@ class RunResult:
                    U_um=_opt_float(d.get("U_um")), iterations=int(d.get("iterations") or 0),
                    tilt_deg=_opt_float(d.get("tilt_deg")), yaw_deg=_opt_float(d.get("yaw_deg")),
                    truth=truth if isinstance(truth, dict) else None,
-                   tilt_u_deg=_opt_float(d.get("tilt_u_deg")), raw=dict(d))
+                   tilt_u_deg=_opt_float(d.get("tilt_u_deg")),
+                   eccentricity=_opt_float(d.get("eccentricity")),
+                   eccentricity_u=_opt_float(d.get("eccentricity_u")), raw=dict(d))
 
 
 @dataclass(frozen=True)

@@ -76,6 +76,9 @@ class PrecheckConfig(Strict):
     tilt_frames: int = Field(8, ge=1, le=100, description=(
         "side-camera frames the tilt is averaged over; the run reports the mean and its "
         "standard uncertainty (one frame's fit is good to 0.0005-0.006 deg)"))
+    rim_frames: int = Field(8, ge=1, le=100, description=(
+        "top-camera frames averaged for the rim's eccentricity; the run reports e and its "
+        "standard uncertainty (at e ~ 0.01-0.03 one frame's e is uncertain to 0.001-0.005)"))
     action: Literal["warn", "refuse"] = "warn"
 
 

@@ -555,16 +555,17 @@ def draw_convergence(run: dict[str, Any], width: int = WIDTH - PLOT_H, height: i
 
 def precheck_note(result: dict[str, Any]) -> str | None:
     """The pre-checks' readings in one line (the side camera's tilt with its standard
-    uncertainty, the top camera's rim eccentricity), or None when neither ran."""
+    uncertainty, the top camera's rim eccentricity with its own), or None when neither ran."""
     bits = []
     tilt, u = result.get("tilt_deg"), result.get("tilt_u_deg")
     if isinstance(tilt, (int, float)):
         unc = f" +/- {u:.4f}" if isinstance(u, (int, float)) else ""
         bits.append(f"sample tilt {tilt:+.4f}{unc} deg (u, k=1)" if unc
                     else f"sample tilt {tilt:+.4f} deg")
-    e = result.get("eccentricity")
+    e, ue = result.get("eccentricity"), result.get("eccentricity_u")
     if isinstance(e, (int, float)):
-        bits.append(f"top-camera rim eccentricity {e:.4f}")
+        bits.append(f"top-camera rim eccentricity {e:.4f} +/- {ue:.4f} (u, k=1)"
+                    if isinstance(ue, (int, float)) else f"top-camera rim eccentricity {e:.4f}")
     return f"pre-checks: {'; '.join(bits)}" if bits else None
 
 

@@ -25,8 +25,8 @@ from alignd.solve import parse_sweep
 
 TRANSLATIONS = ("x", "y", "z", "translator")
 CONTRACT_KEYS = {"run_id", "verdict", "offset_um", "offset_norm_um", "U_um", "iterations", "sweeps",
-                 "tilt_deg", "tilt_u_deg", "eccentricity", "yaw_deg", "reason", "decision",
-                 "budget"}
+                 "tilt_deg", "tilt_u_deg", "eccentricity", "eccentricity_u", "yaw_deg",
+                 "reason", "decision", "budget"}
 
 
 @pytest.mark.parametrize("seed", [1, 7, 23])

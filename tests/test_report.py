@@ -119,6 +119,9 @@ def test_report_notes_give_the_prechecks_readings() -> None:
         "verdict: aligned: ok",
         "pre-checks: sample tilt +0.3002 +/- 0.0001 deg (u, k=1); "
         "top-camera rim eccentricity 0.0094"]
+    run["result"].update(eccentricity_u=0.00043)
+    assert report.report_notes(run)[1].endswith(
+        "top-camera rim eccentricity 0.0094 +/- 0.0004 (u, k=1)")
     run["result"].update(tilt_u_deg=None, eccentricity=None)
     assert report.report_notes(run)[1] == "pre-checks: sample tilt +0.3002 deg"
     run["result"].update(tilt_deg=None)

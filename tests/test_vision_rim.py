@@ -14,6 +14,7 @@ from alignd.vision.rim import (
     eccentricity_from_zenith,
     fit_ellipse,
     fit_rim,
+    fit_rim_frames,
     zenith_from_ellipse,
 )
 from drivers.config import SimWorldConfig
@@ -192,6 +193,50 @@ def test_eccentricity_std_matches_the_scatter_over_noisy_frames() -> None:
         fit_rim(img.astype(np.uint8), None, None, max_eccentricity_std=0.1 * min(stds))
     assert fit_rim(img.astype(np.uint8), None, None).to_json()["eccentricity_std"] == (
         pytest.approx(stds[-1]))
+
+
+def test_the_mean_of_frames_cuts_e_uncertainty_by_their_root_and_stays_right() -> None:
+    """The rim pre-check's several frames of one view (the same noise as above): e's
+    uncertainty falls by about sqrt(8) and e stays within 3 of it; frames that are not
+    one view's, or none, are refused before any fit."""
+    rng = np.random.default_rng(4)
+    a, e = 120.0, 0.04
+    clean = _disc_image(a, e, (240.4, 180.2), 20.0, 140.0, 90.0, 1.0, size=(480, 360))
+    frames = [np.clip(np.rint(clean + rng.normal(0.0, 4.0, clean.shape)), 0, 255
+                      ).astype(np.uint8) for _ in range(8)]
+    one = [fit_rim(f, None, None).eccentricity_std for f in frames]
+    mean = fit_rim_frames(frames, None, None)
+    assert 2.0 < float(np.median(one)) / mean.eccentricity_std < 4.0  # sqrt(8) = 2.8
+    assert abs(mean.eccentricity - e) <= 3 * mean.eccentricity_std
+    assert fit_rim_frames(frames[:1], None, None).eccentricity == fit_rim(
+        frames[0], None, None).eccentricity
+    with pytest.raises(VisionError, match="different sizes"):
+        fit_rim_frames([frames[0], frames[1][:-8]], None, None)
+    with pytest.raises(VisionError, match="no frame"):
+        fit_rim_frames([], None, None)
+
+
+def test_default_tools_fit_the_rim_on_the_configured_frames() -> None:
+    from alignd.config import parse_config
+    from alignd.errors import ConfigError
+    from alignd.procedures.tools import default_tools
+    from drivers.camera import Frame
+    from tests.test_vision_scenes import _cfg_data
+    rng = np.random.default_rng(5)
+    clean = _disc_image(120.0, 0.04, (240.4, 180.2), 20.0, 140.0, 90.0, 1.0, size=(480, 360))
+    d = _cfg_data()
+    cfg = parse_config(d)
+    assert cfg.procedure.precheck.rim_frames == 8
+    tools = default_tools(cfg)
+    assert tools.rim_frames is not None
+    r = tools.rim_frames([Frame(image=np.clip(np.rint(clean + rng.normal(0.0, 2.0, clean.shape)),
+                                              0, 255).astype(np.uint8), timestamp=float(k),
+                                seq=k) for k in range(3)])
+    assert r.frames == 3 and r.u is not None and 0 < r.u < 0.003
+    assert r.eccentricity == pytest.approx(0.04, abs=3 * r.u)
+    d["procedure"] = {**d.get("procedure", {}), "precheck": {"rim_frames": 0}}
+    with pytest.raises(ConfigError, match="rim_frames"):
+        parse_config(d)
 
 
 def test_fit_rim_recovers_from_a_start_pulled_onto_a_cable(

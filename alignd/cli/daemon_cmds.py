@@ -222,6 +222,10 @@ def result_text(result: dict[str, Any]) -> str:
             u = result.get("tilt_u_deg") if key == "tilt_deg" else None
             lines.append(f"  {label:10s} {result[key]:.3f} deg" if u is None else
                          f"  {label:10s} {result[key]:.4f} +- {u:.4f} deg (u, k = 1)")
+    if result.get("eccentricity") is not None:
+        ue = result.get("eccentricity_u")
+        lines.append(f"  rim e      {result['eccentricity']:.4f}" + (
+            "" if ue is None else f" +- {ue:.4f} (u, k = 1)") + " (top camera placement)")
     truth = result.get("truth")
     if isinstance(truth, dict) and truth.get("offset_norm_um") is not None:
         lines.append(f"  truth      {truth['offset_norm_um']:.1f} um (simulator, not used by "

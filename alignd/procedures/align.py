@@ -52,7 +52,7 @@ from alignd.procedures.sweep import (
     measure,
     sweep_runout,
 )
-from alignd.procedures.tools import TiltReading, Tools, default_tools
+from alignd.procedures.tools import RimReading, TiltReading, Tools, default_tools
 from alignd.textfmt import identity_text
 from drivers.camera import Camera, Frame
 
@@ -102,6 +102,7 @@ class _State:
     tilt_deg: float | None = None
     tilt_u_deg: float | None = None  # its standard uncertainty (k = 1)
     eccentricity: float | None = None  # the top camera's rim pre-check
+    eccentricity_u: float | None = None  # its standard uncertainty (k = 1)
     warnings: list[str] = field(default_factory=list)
     history: list[dict[str, Any]] = field(default_factory=list)
     calibration: Calibration | None = None
@@ -233,6 +234,7 @@ class _Run:
             U_um=None if final is None else final.U_um,
             iterations=self.st.iterations, sweeps=self.st.sweeps, tilt_deg=self.st.tilt_deg,
             tilt_u_deg=self.st.tilt_u_deg, eccentricity=self.st.eccentricity,
+            eccentricity_u=self.st.eccentricity_u,
             yaw_deg=None if final is None else final.yaw_deg, config_error=config_error,
             budget=None if final is None else final.budget.to_dict(),
             decision=None if final is None else self._decision(final).to_dict())
@@ -577,13 +579,16 @@ class _Run:
         else:
             raise VisionError(f"holder not found in {HOLDER_LOOK_FRAMES} top-camera frames "
                               f"({det.reason or 'no detection'}); nothing moved")
-        if self.tools.eccentricity is not None:
+        if self.tools.eccentricity is not None or self.tools.rim_frames is not None:
             check_abort(self.abort)
             self._emit("precheck", "top-camera eccentricity")
             try:
-                e = self.tools.eccentricity(top.grab(after=top.clock.now()))
-                self.st.eccentricity = e
-                self.recorder.event(f"pre-check: top-camera rim eccentricity {e:.4f}")
+                rim = self._rim(top, pc.rim_frames)
+                e = self.st.eccentricity = rim.eccentricity
+                self.st.eccentricity_u = rim.u
+                u = "" if rim.u is None else f" +- {rim.u:.4f}"
+                self.recorder.event(f"pre-check: top-camera rim eccentricity {e:.4f}{u} "
+                                    f"(mean of {rim.frames} top frame(s), u k = 1)")
                 if e > pc.max_eccentricity:
                     problems.append(("fault", f"top-camera eccentricity {e:.3f} exceeds "
                                      f"{pc.max_eccentricity:g} (camera not on the axis)"))
@@ -609,6 +614,21 @@ class _Run:
             if pc.action == "refuse":
                 raise _Stop(verdict, f"pre-check refused: {msg}")
             self._warn(f"pre-check: {msg}")
+
+    def _rim(self, top: Camera, n: int) -> RimReading:
+        """The rim's eccentricity on the mean of ``n`` top frames, each exposed after the
+        one before (at small e one frame's noise dominates e's uncertainty). Tools without
+        a multi-frame fit give ``tools.eccentricity`` of one frame, without uncertainty."""
+        assert self.tools is not None
+        if self.tools.rim_frames is None:
+            assert self.tools.eccentricity is not None
+            return RimReading(float(self.tools.eccentricity(grab_fresh(top, top.clock.now()))),
+                              None, 1)
+        frames: list[Frame] = []
+        for _ in range(n):
+            check_abort(self.abort)
+            frames.append(grab_fresh(top, top.clock.now()))
+        return self.tools.rim_frames(frames)
 
     def _tilt(self, side: Camera, n: int) -> TiltReading:
         """The sample tilt over ``n`` side frames, each exposed after the one before (a

@@ -3,7 +3,8 @@
 Contract keys: ``run_id``, ``verdict``, ``offset_um`` ([x, y], turntable frame),
 ``offset_norm_um``, ``U_um`` (expanded uncertainty, k = 2), ``iterations``, ``tilt_deg``,
 ``yaw_deg``, ``reason``; ``tilt_u_deg`` (the tilt's standard uncertainty, k = 1, from
-the pre-check's frames), ``eccentricity`` (the top camera's rim pre-check); since the
+the pre-check's frames), ``eccentricity`` (the top camera's rim pre-check) and
+``eccentricity_u`` (its standard uncertainty, k = 1, from the mean of its frames); since the
 decisive-verdicts release also ``sweeps`` (measurements; ``iterations`` counts correction
 moves), ``decision`` (the rule, guard band, zones and the
 operator's line) and ``budget`` (the uncertainty budget, um); on a simulated rig also
@@ -48,6 +49,7 @@ class RunResult:
     tilt_deg: float | None = None
     tilt_u_deg: float | None = None  # standard uncertainty of tilt_deg (k = 1)
     eccentricity: float | None = None  # the top camera's rim pre-check (apparent e)
+    eccentricity_u: float | None = None  # standard uncertainty of eccentricity (k = 1)
     yaw_deg: float | None = None
     truth: dict[str, Any] | None = None
     config_error: bool = False  # the fault was a config problem (exit code 2)
@@ -86,6 +88,7 @@ class RunResult:
             "tilt_deg": _num(self.tilt_deg, 4),
             "tilt_u_deg": _num(self.tilt_u_deg, 5),
             "eccentricity": _num(self.eccentricity, 4),
+            "eccentricity_u": _num(self.eccentricity_u, 5),
             "yaw_deg": _num(self.yaw_deg, 4),
             "reason": self.reason,
             "sweeps": int(self.sweeps),

@@ -71,6 +71,15 @@ class Detection(Protocol):
 
 
 @dataclass(frozen=True)
+class RimReading:
+    """The top camera's rim eccentricity from one or more frames, and its uncertainty."""
+
+    eccentricity: float
+    u: float | None  # standard uncertainty (k = 1); None when the tool cannot say
+    frames: int = 1
+
+
+@dataclass(frozen=True)
 class TiltReading:
     """The sample tilt from one or more side frames: value and standard uncertainty."""
 
@@ -98,6 +107,7 @@ class Tools:
     rim: Callable[[Frame, float | None, float | None], RimInfo] | None = None
     side: Callable[[Frame], SideInfo] | None = None
     tilt_frames: Callable[[list[Frame]], TiltReading] | None = None  # several frames at once
+    rim_frames: Callable[[list[Frame]], RimReading] | None = None  # several frames at once
 
 
 def expected_holder_px(cfg: AligndConfig) -> tuple[float, float] | None:
@@ -207,6 +217,11 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     def eccentricity(frame: Frame) -> float:
         return float(vision.fit_rim(frame.gray).eccentricity)
 
+    def rim_frames(frames: list[Frame]) -> RimReading:
+        fit = vision.fit_rim_frames([f.gray for f in frames], None, None)
+        u = fit.eccentricity_std
+        return RimReading(float(fit.eccentricity), float(u) if u == u else None, len(frames))
+
     def rim(frame: Frame, radius_mm: float | None, height_mm: float | None) -> RimInfo:
         res = vision.fit_rim(frame.gray, radius_mm, height_mm)
         z = float(res.camera_zenith_deg)
@@ -222,7 +237,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
                         float(res.pole_angle_deg), float(np.mean(xs)), float(np.mean(xp)))
 
     return Tools(track=track, solve=solve, tilt=tilt, eccentricity=eccentricity,
-                 rim=rim, side=side, tilt_frames=tilt_frames,
+                 rim=rim, side=side, tilt_frames=tilt_frames, rim_frames=rim_frames,
                  names={"track": "alignd.vision.track_holder",
                         "solve": "alignd.solve.solve_centre(auto)",
                         "tilt": "alignd.vision.measure_tilt",

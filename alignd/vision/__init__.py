@@ -6,6 +6,7 @@
   :func:`measure_tilt_frames`: the mean of several frames and its uncertainty (the
   pre-check); :func:`baseline_tilt`: the thesis' Canny + Hough method, for comparison.
 - :func:`fit_rim`: turntable rim ellipse, eccentricity and camera zenith (eq. 3.7);
+  :func:`fit_rim_frames`: the same on the mean of several frames (the pre-check);
   :class:`PlaneRectifier`: image points rectified to the turntable plane.
 - :mod:`alignd.vision.overlay`: report drawings.
 """
@@ -23,6 +24,7 @@ from alignd.vision.rim import (
     camera_zenith_from_eccentricity,
     eccentricity_from_zenith,
     fit_rim,
+    fit_rim_frames,
     zenith_from_ellipse,
 )
 from alignd.vision.side import (
@@ -44,6 +46,7 @@ __all__ = [
     "camera_zenith_from_eccentricity",
     "eccentricity_from_zenith",
     "fit_rim",
+    "fit_rim_frames",
     "measure_tilt",
     "measure_tilt_frames",
     "measure_yaw",

@@ -29,7 +29,7 @@ them the homography that rectifies image points onto the turntable plane
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -40,7 +40,8 @@ from alignd.errors import VisionError
 from alignd.vision.edges import EdgePoints, area_crossings, as_gray, check_usable
 
 __all__ = ["PlaneRectifier", "RimFit", "camera_zenith_from_eccentricity",
-           "eccentricity_from_zenith", "fit_ellipse", "fit_rim", "zenith_from_ellipse"]
+           "eccentricity_from_zenith", "fit_ellipse", "fit_rim", "fit_rim_frames",
+           "zenith_from_ellipse"]
 
 
 # ---- eq. 3.7 and its inverse -----------------------------------------------------------
@@ -694,9 +695,18 @@ def _geometric_fit(p: Ellipse, xy: np.ndarray, sigma: np.ndarray, iterations: in
     return p, np.abs(z) <= 3.5 * sc
 
 
+MODEL_SIGMA_PX = 0.01  # the blurred-step model's own error on a sharp (0.5 px) edge
+
+
 def _point_sigma(sigma: np.ndarray) -> np.ndarray:
-    """Per-point standard errors floored (a noise-free arc must not outweigh the rest)."""
-    return np.maximum(sigma, 0.5 * float(np.median(sigma)) + 0.002)
+    """Per-point standard errors floored (a noise-free arc must not outweigh the rest).
+
+    The floor holds the profile model's own error: on a sharp edge (0.5 px blur) a pixel's
+    box and the model's Gaussian differ by about 0.01 px with the edge's pixel phase.
+    Below that, noise-free arcs' tiny errors made the robust fit reject a quarter of them
+    by their phase, which biased e at 0.01 by 0.0007 and which arcs went depended on the
+    machine's last bits of rounding."""
+    return np.maximum(sigma, 0.5 * float(np.median(sigma)) + MODEL_SIGMA_PX)
 
 
 def _ellipse_covariance(p: Ellipse, xy: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -878,3 +888,24 @@ class PlaneRectifier:
         X = (self.x0 + plane_height_mm * self.n)[None] + q[:, :1] * self.e1 + q[:, 1:] * self.e2
         return np.column_stack([self.principal_px[0] + self.focal_px * X[:, 0] / X[:, 2],
                                 self.principal_px[1] + self.focal_px * X[:, 1] / X[:, 2]])
+
+
+def fit_rim_frames(images: Sequence[np.ndarray], radius_mm: float | None = 150.0,
+                   height_mm: float | None = 800.0, *,
+                   max_eccentricity_std: float | None = None) -> RimFit:
+    """:func:`fit_rim` on the mean of several frames of one static view.
+
+    At small e one frame's sensor noise is the largest part of e's uncertainty (e = 0.01
+    is an axes' difference of 0.01 px on a 200 px rim): the mean of N frames has 1/sqrt(N)
+    of their noise. What the frames share (the disc's texture, JPEG coding of a still
+    view) does not average out; ``eccentricity_std``, scaled by the points' scatter about
+    the fitted ellipse, still counts it. Frames are taken to grey levels first, so 12-bit
+    words and 8-bit frames mean the same."""
+    if not images:
+        raise VisionError("rim frames: no frame given")
+    grays = [as_gray(im, f"rim frame {i + 1}") for i, im in enumerate(images)]
+    shapes = {g.shape for g in grays}
+    if len(shapes) != 1:
+        raise VisionError(f"rim frames: frames of different sizes {sorted(shapes)}")
+    mean = grays[0] if len(grays) == 1 else np.stack(grays).mean(axis=0, dtype=np.float32)
+    return fit_rim(mean, radius_mm, height_mm, max_eccentricity_std=max_eccentricity_std)

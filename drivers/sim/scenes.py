@@ -136,6 +136,12 @@ class RimSceneSample:
     eccentricity: float
     encoding: Encoding
     params: dict[str, object] = field(default_factory=dict)
+    more_frames: tuple[np.ndarray, ...] = ()  # further frames of the view, own noise
+
+    @property
+    def frames(self) -> tuple[np.ndarray, ...]:
+        """Every frame of the view: ``image`` first."""
+        return (self.image, *self.more_frames)
 
 
 # ---- drawing helpers -------------------------------------------------------------------
@@ -721,8 +727,11 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
 
 # ---- rim ---------------------------------------------------------------------------------
 def random_rim_scene(rng: np.random.Generator, category: str | None = None,
-                     size_px: tuple[int, int] = (1280, 720)) -> RimSceneSample:
-    """One randomised frame of the turntable rim, in view, e 0.01-0.2 (see the docstring)."""
+                     size_px: tuple[int, int] = (1280, 720), frames: int = 1
+                     ) -> RimSceneSample:
+    """One randomised frame of the turntable rim, in view, e 0.01-0.2 (see the docstring);
+    ``frames`` > 1 adds further frames of the same view with independent noise and coding
+    (``RimSceneSample.frames``), as the pre-check grabs them."""
     cat = str(category or RIM_CATEGORIES[int(rng.integers(len(RIM_CATEGORIES)))])
     w, h = size_px
     enc = Encoding(8, False, int(rng.integers(80, 96))) if cat == "jpeg" else Encoding()
@@ -761,7 +770,10 @@ def random_rim_scene(rng: np.random.Generator, category: str | None = None,
                          shadow=occluded and rng.random() < 0.5)
     params.update(info)
     img *= light
-    out = _finish(img, rng, blur=float(rng.uniform(0.4, 1.5)),
-                  read_noise=float(rng.uniform(0.5, 2.5)),
-                  electrons_per_dn=float(rng.uniform(20, 80)), enc=enc)
-    return RimSceneSample(out, cat, c, (a, b), ang, e, enc, params)
+    finish = {"blur": float(rng.uniform(0.4, 1.5)), "read_noise": float(rng.uniform(0.5, 2.5)),
+              "electrons_per_dn": float(rng.uniform(20, 80))}
+    out = _finish(img, rng, enc=enc, **finish)
+    # as for side views: a child generator per further frame keeps later scenes unchanged
+    more = tuple(_finish(img, child, enc=enc, **finish)
+                 for child in (rng.spawn(frames - 1) if frames > 1 else []))
+    return RimSceneSample(out, cat, c, (a, b), ang, e, enc, params, more)

@@ -305,6 +305,9 @@ async function loadRun() {
         (res.tilt_u_deg !== null && res.tilt_u_deg !== undefined
           ? ` \u00b1 ${fmt(res.tilt_u_deg, 4)}\u00b0 <span class="muted">(u, k = 1)</span>` : "") : ""],
       ["yaw", res.yaw_deg !== null && res.yaw_deg !== undefined ? `${fmt(res.yaw_deg, 3)}\u00b0` : ""],
+      ["rim eccentricity", res.eccentricity !== null && res.eccentricity !== undefined ? fmt(res.eccentricity, 4) +
+        (res.eccentricity_u !== null && res.eccentricity_u !== undefined
+          ? ` \u00b1 ${fmt(res.eccentricity_u, 4)} <span class="muted">(u, k = 1)</span>` : "") : ""],
       ["started", `${esc(when(run.started_at))} UTC by ${esc(run.user || "?")}/${esc(run.started_by)}`],
       ["ended", run.ended_at ? `${esc(when(run.ended_at))} UTC` : "still running"],
       ["software", `alignd ${esc(run.software_version)}, config <code>${esc(String(run.config_hash).slice(0, 12))}</code>`],
