@@ -512,18 +512,24 @@ class _Run:
             return f"widening the sweep to +-{nxt.half_deg:g} deg"
         return f"averaging {nxt.frames_per_step} frames per step"
 
+    def _floor_above(self, m: Measurement, u_um: float) -> bool:
+        """Whether no better measurement can bring U under ``u_um``: U cannot fall below k
+        times the residual error motion, which more sweeps and frames do not average out.
+        With a runout map that floor falls with the swept angle, so only a sweep as wide
+        as allowed is at it; without one it is ``procedure.systematic_um`` at any width."""
+        return (m.budget.k * m.budget.get("residual error motion") >= u_um
+                and (not m.runout_corrected
+                     or self.plan.half_deg >= self._widest_deg() - 1e-6))
+
     def _floor_blocks(self, m: Measurement) -> str:
-        """Why no better measurement can decide ('' when one can): U cannot fall below
-        twice the residual error motion, which more sweeps do not average out."""
-        u_floor = m.budget.get("residual error motion")
+        """Why no better measurement can decide ('' when one can)."""
         need = abs(self.tol - m.norm_um)
-        if self.p.decision_rule != "guarded" or 2.0 * u_floor < need:
+        if self.p.decision_rule != "guarded" or not self._floor_above(m, need):
             return ""
-        if self.plan.half_deg < self._widest_deg() - 1e-6:
-            return ""  # the map's floor falls with the swept angle: a wider sweep may decide
         fix = ("re-run alignctl commission" if self.runout is not None
                else "commission the rig (alignctl commission) for a runout map")
-        return (f"the residual error motion alone gives U >= {2.0 * u_floor:.1f} um, more "
+        return (f"the residual error motion alone gives U >= "
+                f"{m.budget.k * m.budget.get('residual error motion'):.1f} um, more "
                 f"than the {need:.1f} um between the offset and the tolerance; {fix}")
 
     def _record(self, kind: str, m: Measurement, **extra: Any) -> dict[str, Any]:
@@ -710,7 +716,16 @@ class _Run:
             sweeps_left = self.st.sweeps < self.p.max_sweeps
             helps = gain > rep and moves_left and sweeps_left
             if d.conforms and not helps:
-                if (m.U_um > self.p.target_u_fraction * self.tol and sweeps_left
+                target_u = self.p.target_u_fraction * self.tol
+                at_floor = m.U_um > target_u and self._floor_above(m, target_u)
+                if at_floor:
+                    self.recorder.event(
+                        f"U {m.U_um:.1f} um is above {self.p.target_u_fraction:g} of the "
+                        f"tolerance, but the residual error motion alone holds it above "
+                        f"{target_u:g} um; more sweeps would not lower it" +
+                        ("" if m.runout_corrected else
+                         " (commission the rig, alignctl commission, for a runout map)"))
+                if (m.U_um > target_u and sweeps_left and not at_floor
                         and self._better_plan() is not None):
                     what = self._measure_better()
                     self._record("align", m, **extra, action="measure better", next=what)
