@@ -361,18 +361,23 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
     """The detection from the sides' area-method fits: checked, widened for soft edges,
     refined by the profile fit where that agrees."""
     pol = _polarity(gray, corners)
+    # with the profile fit to follow, the area method's corner sigma is rarely reported:
+    # its residual correlations are left out here and measured only when it is
     det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                    size_tolerance)
+                    size_tolerance, inflate=not profile)
     hw, used = _HALF_WIDTH, sides
     if not det.ok and "rms" in det.reason:
         # a soft (defocused) edge overflows the +-5 px window: measure it in +-9 px
         wide = _fit_sides(gray, corners, 9, 12.0, min_contrast, lens)
         det2 = _assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                         size_tolerance)
+                         size_tolerance, inflate=not profile)
         if det2.ok:
             det = det2
             hw, used = 9, wide
-    if det.ok and profile:
+    if profile and not det.ok:
+        det = _assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
+                        size_tolerance)
+    elif profile:
         # the sides it passed, refined by the profile fit: kept when they pass as well
         fine, widths = _profile_sides(gray, used, hw, lens, blur)
         det3 = _assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
@@ -385,6 +390,9 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         if moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px:
             det = replace(det3, side_blur_px=tuple(
                 float(v) for v in widths[_side_match(corners, det3.corners_px)]))
+        else:
+            det = _assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
+                            size_tolerance)
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
     return det
@@ -409,8 +417,11 @@ def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
 
 def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, pol: str,
               expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
-              max_rms_px: float, lens: Lens | None = None, size_tolerance: float = 0.15
-              ) -> HolderDetection:
+              max_rms_px: float, lens: Lens | None = None, size_tolerance: float = 0.15,
+              inflate: bool = True) -> HolderDetection:
+    """The detection the sides' lines make: corners, checks, pose and uncertainty
+    (``inflate`` False: corner_sigma_px without the sides' residual correlation, for a
+    detection whose uncertainty is not reported)."""
     lines = [s[0] for s in sides]
     reasons = []
     edge_ok = []
@@ -434,8 +445,8 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
     fit_sig = np.full(4, np.nan)
     # the fit's covariance counts the columns as independent: scaled up by how much its
     # residuals correlate along the side (JPEG blocks, texture, penumbrae)
-    infl = [residual_correlation(ln, _ideal(pts, lens)) if ln is not None and good else 1.0
-            for (ln, pts), good in zip(sides, edge_ok, strict=True)]
+    infl = [residual_correlation(ln, _ideal(pts, lens)) if ln is not None and good
+            and inflate else 1.0 for (ln, pts), good in zip(sides, edge_ok, strict=True)]
     for i in range(4):
         a, b = lines[i - 1], lines[i]
         if edge_ok[i - 1] and edge_ok[i] and a is not None and b is not None:
