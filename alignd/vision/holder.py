@@ -119,6 +119,13 @@ def order_corners(corners: np.ndarray, hint: np.ndarray | None = None) -> np.nda
 
 
 _ROLLS = (np.arange(4)[None, :] + np.arange(4)[:, None]) % 4  # row k: np.roll(c, -k)
+_NEXT = _ROLLS[1]  # c[_NEXT]: each corner's successor (np.roll(c, -1, axis=0))
+
+
+def _side_lengths(c: np.ndarray) -> np.ndarray:
+    """The length of each side k (corner k to k + 1) of a quadrilateral."""
+    d = c[_NEXT] - c
+    return np.sqrt((d * d).sum(axis=1))
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> float:
@@ -169,8 +176,8 @@ def _profile_sides(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]]
 def _side_match(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """For each side of quadrilateral ``dst`` (corner k to k + 1), the index of the side
     of ``src`` nearest to it (by their midpoints): the same side in another order."""
-    ms = (src + np.roll(src, -1, axis=0)) / 2
-    md = (dst + np.roll(dst, -1, axis=0)) / 2
+    ms = (src + src[_NEXT]) / 2
+    md = (dst + dst[_NEXT]) / 2
     return np.argmin(((md[:, None, :] - ms[None, :, :]) ** 2).sum(axis=2), axis=1)
 
 
@@ -216,11 +223,12 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         # the +-10 px side search); if the holder is not there any more, fall back to a
         # full search
         try:
-            det = _refine(gray, order_corners(hint_arr), polarity, expected_size_px, hint_arr,
-                          min_contrast, max_rms_px, passes, lens, size_tolerance,
-                          refine == "profile", seeded=True, prior=prior)
-            if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px)
-                                                - order_corners(hint_arr), axis=1)) > _RESEED_PX:
+            seed = order_corners(hint_arr)
+            det = _refine(gray, seed, polarity, expected_size_px, hint_arr, min_contrast,
+                          max_rms_px, passes, lens, size_tolerance, refine == "profile",
+                          seeded=True, prior=prior)
+            if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px) - seed,
+                                                axis=1)) > _RESEED_PX:
                 # the holder moved far within the +-10 px side search (a wide sweep's
                 # steps): the fine windows sat off-centre and could straddle a nearby
                 # edge (a sample strip along a side), skewing a side by up to 2 px at a
@@ -304,8 +312,7 @@ def _seed_holds(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray
     lines = [ln for ln, _pts in sides if ln is not None]
     if len(lines) != 4:
         return False
-    for i, ln in enumerate(lines):
-        span = float(np.linalg.norm(corners[(i + 1) % 4] - corners[i]))
+    for span, ln in zip(_side_lengths(corners).tolist(), lines, strict=True):
         crossed = max(span - 20.0, 1.0) * max(abs(ln.n[0]), abs(ln.n[1]))  # columns (rows)
         if ln.rms_px > max_rms_px or ln.n_used < 0.8 * crossed:
             return False
@@ -402,7 +409,7 @@ def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
     """"dark" when the quadrilateral's middle is darker than just outside its sides."""
     h, w = gray.shape
     ctr = c.mean(axis=0)
-    mids = (c + np.roll(c, -1, axis=0)) / 2
+    mids = (c + c[_NEXT]) / 2
     v = mids - ctr
     v /= np.maximum(np.linalg.norm(v, axis=1), 1e-9)[:, None]
     at = np.vstack([ctr[None], mids + 12.0 * v])  # the middle, then just outside each side
@@ -426,9 +433,9 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
     reasons = []
     edge_ok = []
     frac = []
+    spans = _side_lengths(corners).tolist()
     for i, (ln, _pts) in enumerate(sides):
-        span = float(np.linalg.norm(corners[(i + 1) % 4] - corners[i]))
-        expected = max(span - 20.0, 1.0) * 0.7  # columns/rows crossed, at most
+        expected = max(spans[i] - 20.0, 1.0) * 0.7  # columns/rows crossed, at most
         if ln is None:
             edge_ok.append(False)
             frac.append(0.0)

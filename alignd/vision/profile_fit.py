@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from alignd.vision.edges import EdgePoints, adaptive_slopes, segment_median
+from alignd.vision.edges import EdgePoints, adaptive_slopes, segment_median, xy_columns
 
 __all__ = ["fit_crossings", "fit_crossings_blur", "step_response"]
 
@@ -115,8 +115,8 @@ def _tail_slopes(P: np.ndarray, edge: np.ndarray, n_edges: int
 
 def _start(P: np.ndarray, x: np.ndarray, b1: np.ndarray, b2: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray]:
-    a1 = P[:, :2].mean(axis=1) - b1 * x[:2].mean()
-    return a1, P[:, -2:].mean(axis=1) - b2 * x[-2:].mean() - a1
+    a1 = (P[:, 0] + P[:, 1]) / 2 - b1 * x[:2].mean()  # (as .mean(axis=1), at less cost)
+    return a1, (P[:, -2] + P[:, -1]) / 2 - b2 * x[-2:].mean() - a1
 
 
 def _fit(P: np.ndarray, x: np.ndarray, u: np.ndarray, s: np.ndarray, nu: np.ndarray,
@@ -328,6 +328,6 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
         sel = good & (r1.edge == k)
         t, q = r1.t[sel].astype(float), p[sel]
         vertical = edges[i].vertical
-        xy = np.column_stack([q, t]) if vertical else np.column_stack([t, q])
+        xy = xy_columns(q, t) if vertical else xy_columns(t, q)
         out[i] = EdgePoints(xy, r1.contrast[sel], vertical)
     return out, widths
