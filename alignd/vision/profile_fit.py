@@ -31,7 +31,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from alignd.vision.edges import EdgePoints, adaptive_slopes, segment_median, xy_columns
+from alignd.vision.edges import (
+    EdgePoints,
+    adaptive_slopes,
+    edge_rows,
+    segment_median,
+    xy_columns,
+)
 
 __all__ = ["fit_crossings", "fit_crossings_blur", "step_response"]
 
@@ -164,10 +170,10 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     grid = np.arange(-reach, reach + _H, _H)
     ng = grid.size
     tS, tS1, _ = step_response(grid[None, :], blur[:, None], geo[:, 2:3], geo[:, 3:4])
-    # S and S' at the nodes and their steps to the next node (linear interpolation)
-    tabS, tabS1 = tS.ravel(), tS1.ravel()
-    dS = np.diff(tS, axis=1, append=tS[:, -1:]).ravel()
-    dS1 = np.diff(tS1, axis=1, append=tS1[:, -1:]).ravel()
+    # S and S' at the nodes and their steps to the next node (linear interpolation), side
+    # by side: one gather reads all four
+    tab = np.stack([tS, np.diff(tS, axis=1, append=tS[:, -1:]),
+                    tS1, np.diff(tS1, axis=1, append=tS1[:, -1:])], axis=2).reshape(-1, 4)
     X = x[None, :]
     nu_c = geo[row, 1][:, None]
     # the normal distance's table index is (nu (x - u) + reach) / H: its u-free part once
@@ -185,8 +191,9 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         i = f.astype(np.intp)
         f -= i
         i += base_idx
-        S = tabS.take(i) + dS.take(i) * f
-        S1 = tabS1.take(i) + dS1.take(i) * f
+        node = tab.take(i, axis=0)
+        S = node[..., 0] + node[..., 1] * f
+        S1 = node[..., 2] + node[..., 3] * f
         amp = D[:, None] + db * X
         r = base1 - a1[:, None] - amp * S
         g = -nu_c * amp * S1
@@ -324,8 +331,8 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     good &= misfit <= _MISFIT * typical[r1.edge] + 0.5
     p = centre + u
     out = list(empty)
-    for k, i in enumerate(use):
-        sel = good & (r1.edge == k)
+    for k, sel in enumerate(edge_rows(good, r1.edge, ne)):
+        i = use[k]
         t, q = r1.t[sel].astype(float), p[sel]
         vertical = edges[i].vertical
         xy = xy_columns(q, t) if vertical else xy_columns(t, q)
