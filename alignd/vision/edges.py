@@ -119,13 +119,13 @@ class EdgePoints:
     vertical: bool
 
 
-def _row_mean(P: np.ndarray) -> np.ndarray:
-    """Each row's mean of a few columns (fewer than 8: then the same sum, in the same
-    order, as ``P.mean(axis=1)``, without a reduction's cost per row)."""
-    s = P[:, 0]
-    for j in range(1, P.shape[1]):
-        s = s + P[:, j]
-    return s / P.shape[1]
+def _mean_of(rows: np.ndarray) -> np.ndarray:
+    """The mean of a few rows (fewer than 8: then the same sum, in the same order, as
+    ``rows.T.mean(axis=1)`` of the windows in rows, without its loop per window)."""
+    s = rows[0]
+    for r in rows[1:]:
+        s = s + r
+    return s / len(rows)
 
 
 def _nan_to_zero(v: np.ndarray) -> np.ndarray:
@@ -361,10 +361,12 @@ def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarr
     starts = np.cumsum(counts) - counts
     j = np.arange(m)
     flat = np.ascontiguousarray(gray).ravel()
-    P = flat.take(base[:, None] + (start[:, None] + j[None, :]) * stride[:, None]).astype(
-        np.float64)
-    S = _row_mean(P[:, :tails])
-    E = _row_mean(P[:, -tails:])
+    # the windows pixel-major (pixel, column): a column's levels then broadcast along the
+    # long axis and the sum over a window's pixels adds whole rows (with a window's few
+    # pixels along the last axis, numpy runs both as a short loop per column)
+    P = flat.take(base + (start + j[:, None]) * stride).astype(np.float64)
+    S = _mean_of(P[:tails])
+    E = _mean_of(P[-tails:])
     S_s = _segment_moving_mean(S, seg, counts, starts, smooth)
     E_s = _segment_moving_mean(E, seg, counts, starts, smooth)
     js = (tails - 1) / 2
@@ -375,13 +377,13 @@ def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarr
         # otherwise tilt the line), except where a shadow's penumbra crosses the edge
         wts = np.arange(tails) - js
         wts = wts / float(wts @ wts)
-        both = adaptive_slopes(np.concatenate([P[:, :tails] @ wts, P[:, -tails:] @ wts]),
+        both = adaptive_slopes(np.concatenate([wts @ P[:tails], wts @ P[-tails:]]),
                                np.concatenate([seg, seg + ne]), 2 * ne, smooth)
-        slope_s, slope_e = both[:n, None], both[n:, None]
+        slope_s, slope_e = both[:n], both[n:]
     else:
-        slope_s = slope_e = np.zeros((n, 1))
-    Sj = S_s[:, None] + slope_s * (j[None, :] - js)
-    Ej = E_s[:, None] + slope_e * (j[None, :] - je)
+        slope_s = slope_e = np.zeros(n)
+    Sj = S_s + (j[:, None] - js) * slope_s
+    Ej = E_s + (j[:, None] - je) * slope_e
     contrast = E_s - S_s
     good = np.abs(contrast) >= min_contrast
     # a column that clips a corner or a neighbouring edge shows a partial step, judged
@@ -394,15 +396,15 @@ def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarr
     ref = _segment_moving_mean(np.where(good, raw, med[seg]), seg, counts, starts, 15)
     good &= np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
     denom = Sj - Ej
-    denom = np.where(good[:, None] & (np.abs(denom) > 1e-6), denom, 1.0)
+    denom = np.where(good & (np.abs(denom) > 1e-6), denom, 1.0)
     frac = (P - Ej) / denom
-    pos = start - 0.5 + frac @ np.ones(m)  # (row sums: a product costs less than .sum)
+    pos = start - 0.5 + np.ones(m) @ frac
     rel = pos - start
     good &= (rel > tails) & (rel < m - 1 - tails)
     # the profile must be a single step: no sample far outside the level range
-    lo = np.minimum(Sj, Ej) - 0.35 * np.abs(contrast)[:, None]
-    hi = np.maximum(Sj, Ej) + 0.35 * np.abs(contrast)[:, None]
-    good &= np.all((lo < P) & (hi > P), axis=1)
+    lo = np.minimum(Sj, Ej) - 0.35 * np.abs(contrast)
+    hi = np.maximum(Sj, Ej) + 0.35 * np.abs(contrast)
+    good &= np.all((lo < P) & (hi > P), axis=0)
     for k, sel in enumerate(edge_rows(good, seg, ne)):
         if sel.size == 0:
             continue

@@ -174,19 +174,22 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     # by side: one gather reads all four
     tab = np.stack([tS, np.diff(tS, axis=1, append=tS[:, -1:]),
                     tS1, np.diff(tS1, axis=1, append=tS1[:, -1:])], axis=2).reshape(-1, 4)
-    X = x[None, :]
-    nu_c = geo[row, 1][:, None]
+    # pixel-major arrays (pixel, row): each row's parameters then broadcast along the long
+    # axis and a window's sum over its pixels adds whole rows (with the few pixels of a
+    # window along the last axis, numpy runs both as a short loop per row)
+    xc = x[:, None]
+    nu = geo[row, 1]
     # the normal distance's table index is (nu (x - u) + reach) / H: its u-free part once
-    lead = (nu_c * X + reach) / _H
-    nu_h = nu_c[:, 0] / _H
-    base_idx = (row * ng)[:, None]
+    lead = (xc * nu + reach) / _H
+    nu_h = nu / _H
+    base_idx = row * ng
     a1, D = _start(P, x, b1, b2)
-    db = (b2 - b1)[:, None]
-    base1 = P - b1[:, None] * X
+    db = b2 - b1
+    base1 = np.ascontiguousarray(P.T) - xc * b1
     m = float(P.shape[1])
-    ones = np.ones(P.shape[1])  # row sums as a product (a fraction of .sum's cost)
+    ones = np.ones(P.shape[1])  # sums over the pixels as a product
     for _ in range(iterations):
-        f = lead - (nu_h * u)[:, None]
+        f = lead - nu_h * u
         np.minimum(np.maximum(f, 0.0, out=f), ng - 1.001, out=f)
         i = f.astype(np.intp)
         f -= i
@@ -194,13 +197,12 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         node = tab.take(i, axis=0)
         S = node[..., 0] + node[..., 1] * f
         S1 = node[..., 2] + node[..., 3] * f
-        amp = D[:, None] + db * X
-        r = base1 - a1[:, None] - amp * S
-        g = -nu_c * amp * S1
-        sS, sg = S @ ones, g @ ones
-        sSS, sSg, sgg = (np.einsum("ij,ij->i", S, S), np.einsum("ij,ij->i", S, g),
-                         np.einsum("ij,ij->i", g, g))
-        r0, rS, rg = r @ ones, np.einsum("ij,ij->i", r, S), np.einsum("ij,ij->i", r, g)
+        amp = D + xc * db
+        r = base1 - a1 - amp * S
+        g = -nu * amp * S1
+        sS, sg = ones @ S, ones @ g
+        sSS, sSg, sgg = ones @ (S * S), ones @ (S * g), ones @ (g * g)
+        r0, rS, rg = ones @ r, ones @ (r * S), ones @ (r * g)
         # the symmetric [[m, sS, sg], [sS, sSS, sSg], [sg, sSg, sgg]] by its cofactors
         c00 = sSS * sgg - sSg * sSg
         c01 = sSg * sg - sS * sgg
@@ -213,7 +215,7 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         a1 += (c00 * r0 + c01 * rS + c02 * rg) / det
         D += (c01 * r0 + c11 * rS + c12 * rg) / det
         u = u + np.clip((c02 * r0 + c12 * rS + c22 * rg) / det, -1.0, 1.0)
-    misfit = np.sqrt(np.maximum(np.einsum("ij,ij->i", r, r) - r0 * r0 / m, 0.0) / m)
+    misfit = np.sqrt(np.maximum(ones @ (r * r) - r0 * r0 / m, 0.0) / m)
     return u, D, misfit
 
 
