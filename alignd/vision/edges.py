@@ -553,7 +553,7 @@ def residual_correlation(ln: Line, pts: EdgePoints, block: int = 8) -> float:
     r = pts.xy[:n, 1 - k] - ln.minor_at(pts.xy[:n, k])
     lim = 3.5 * max(ln.rms_px, 1e-6)
     r = np.clip(r, -lim, lim)  # outlying columns the fit rejected
-    r = r - r.mean()
+    r = r - r.sum() / r.size
     v = float(r @ r)
     if v <= 0.0:
         return 1.0
