@@ -447,23 +447,22 @@ def coarse_edges_many(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndar
         return out
     seg, t, start, base, stride = (np.concatenate(p) for p in zip(*parts, strict=True))
     flat = np.ascontiguousarray(gray).ravel()
-    P = flat.take(base[:, None] + (start[:, None] + np.arange(m)[None, :]) * stride[:, None]
-                  ).astype(np.float32)
-    P = (P[:, :-2] + P[:, 1:-1] + P[:, 2:]) / 3  # a little smoothing against noise
-    D = np.diff(P, axis=1)
+    # pixel-major (pixel, column), as in area_crossings_many
+    P = flat.take(base + (start + np.arange(m)[:, None]) * stride).astype(np.float32)
+    P = (P[:-2] + P[1:-1] + P[2:]) / 3  # a little smoothing against noise
+    D = np.diff(P, axis=0)
     # one sign per edge: the dominant one
     ne = len(segments)
-    up = segment_median(D.max(axis=1), seg, ne) >= segment_median(-D.min(axis=1), seg, ne)
+    up = segment_median(D.max(axis=0), seg, ne) >= segment_median(-D.min(axis=0), seg, ne)
     sign = np.where(up, 1.0, -1.0).astype(np.float32)[seg]
-    SD = sign[:, None] * D
-    k = np.argmax(SD, axis=1)
-    step = SD[np.arange(SD.shape[0]), k]
+    SD = sign * D
+    k = np.argmax(SD, axis=0)
+    step = SD[k, np.arange(SD.shape[1])]
     pos = (start + k + 1.5).astype(float)
     tf = t.astype(float)
-    for e in np.unique(seg):
-        sel = (seg == e) & (step * 3 >= min_step)
-        xy = np.column_stack([pos[sel], tf[sel]]) if vert[e] else np.column_stack(
-            [tf[sel], pos[sel]])
+    # (an edge without columns gets no points, and no line)
+    for e, sel in enumerate(edge_rows(step * 3 >= min_step, seg, ne)):
+        xy = xy_columns(pos[sel], tf[sel]) if vert[e] else xy_columns(tf[sel], pos[sel])
         out[e] = fit_line(EdgePoints(xy, step[sel], vert[e]), reject_sigma=3.0, min_points=8,
                           min_sigma=0.7)
     return out
