@@ -218,7 +218,7 @@ def segment_median(v: np.ndarray, seg: np.ndarray, n_seg: int, *, upper: bool = 
     rows[seg, np.arange(v.size) - (np.cumsum(counts) - counts)[seg]] = v
     hi = counts // 2
     lo = np.maximum((counts - 1) // 2, 0)
-    rows.partition(np.unique(np.concatenate([hi, lo]) if not upper else hi), axis=1)
+    rows.partition(np.concatenate([hi, lo]) if not upper else hi, axis=1)
     out = rows[np.arange(n_seg), hi]
     if not upper:
         out = 0.5 * (out + rows[np.arange(n_seg), lo])
