@@ -120,8 +120,8 @@ class EdgePoints:
 
 
 def _mean_of(rows: np.ndarray) -> np.ndarray:
-    """The mean of a few rows (fewer than 8: then the same sum, in the same order, as
-    ``rows.T.mean(axis=1)`` of the windows in rows, without its loop per window)."""
+    """The mean of a few rows, added in order: for fewer than 8 the same sum as np.mean's
+    over that axis, without a reduction's loop per column."""
     s = rows[0]
     for r in rows[1:]:
         s = s + r
