@@ -17,6 +17,7 @@ from alignd.vision.edges import (
     coarse_edges_many,
     edge_points,
     edge_points_many,
+    edge_rows,
     segment_median,
 )
 from drivers.sim.scenes import random_top_scene
@@ -55,6 +56,19 @@ def test_segment_median_is_the_median_per_segment() -> None:
         assert np.isnan(got[-1])  # a segment without values
         mean_mid = segment_median(np.concatenate(parts), seg, len(parts), upper=False)
         np.testing.assert_allclose(mean_mid, [np.median(p) for p in parts], rtol=0, atol=1e-12)
+
+
+def test_edge_rows_are_each_segments_good_rows() -> None:
+    """Segments without a good row (or without any row) get an empty index array."""
+    rng = np.random.default_rng(13)
+    for _ in range(100):
+        parts = _segments(rng)
+        seg = np.concatenate([np.full(p.size, i) for i, p in enumerate(parts)])
+        good = rng.random(seg.size) < 0.7
+        got = edge_rows(good, seg, len(parts) + 1)
+        assert len(got) == len(parts) + 1 and got[-1].size == 0
+        for k, idx in enumerate(got):
+            np.testing.assert_array_equal(idx, np.flatnonzero(good & (seg == k)))
 
 
 @pytest.fixture(scope="module")

@@ -26,9 +26,9 @@ from alignd.errors import VisionError
 
 __all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
            "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
-           "coarse_edges_many", "edge_points",
-           "edge_points_many", "fit_line", "intersect", "residual_correlation", "segment_median",
-           "sensor_full_scale"]
+           "coarse_edges_many", "edge_points", "edge_points_many", "edge_rows", "fit_line",
+           "intersect", "residual_correlation", "segment_median", "sensor_full_scale",
+           "xy_columns"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -119,6 +119,36 @@ class EdgePoints:
     vertical: bool
 
 
+def _mean_of(rows: np.ndarray) -> np.ndarray:
+    """The mean of a few rows, added in order: for fewer than 8 the same sum as np.mean's
+    over that axis, without a reduction's loop per column."""
+    s = rows[0]
+    for r in rows[1:]:
+        s = s + r
+    return s / len(rows)
+
+
+def _nan_to_zero(v: np.ndarray) -> np.ndarray:
+    """``v`` with NaN as 0 (np.nan_to_num for arrays without infinities, at less cost)."""
+    return np.where(np.isnan(v), 0.0, v)
+
+
+def edge_rows(good: np.ndarray, seg: np.ndarray, n_seg: int) -> list[np.ndarray]:
+    """The indices of the ``good`` rows of each segment (``seg`` non-decreasing, 0 ..
+    n_seg - 1): one pass over the rows, not a mask per segment."""
+    idx = np.flatnonzero(good)
+    counts = np.bincount(seg[idx], minlength=n_seg)
+    return np.split(idx, np.cumsum(counts)[:-1])
+
+
+def xy_columns(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The (N, 2) array of columns a and b (np.column_stack of two 1-D arrays)."""
+    out = np.empty((a.size, 2))
+    out[:, 0] = a
+    out[:, 1] = b
+    return out
+
+
 def _moving_mean(v: np.ndarray, k: int) -> np.ndarray:
     """Mean over +-k along the last axis, truncated at the ends (k at most (n - 1) / 2)."""
     n = v.shape[-1]
@@ -181,14 +211,17 @@ def segment_median(v: np.ndarray, seg: np.ndarray, n_seg: int, *, upper: bool = 
     counts = np.bincount(seg, minlength=n_seg)
     if v.size == 0:
         return np.full(n_seg, np.nan)
-    starts = np.cumsum(counts) - counts
-    span = float(np.max(v) - np.min(v)) + 1.0
-    vs = v[np.argsort(v + seg * span, kind="stable")]  # by segment, then by value
-    hi = np.minimum(starts + counts // 2, v.size - 1)
-    out = vs[hi].astype(float)
+    # the segments as the rows of one array padded with +inf (sorting last): a partition
+    # of every row at the middle positions (a sort of all the values cost several times
+    # as much)
+    rows = np.full((n_seg, int(counts.max())), np.inf)
+    rows[seg, np.arange(v.size) - (np.cumsum(counts) - counts)[seg]] = v
+    hi = counts // 2
+    lo = np.maximum((counts - 1) // 2, 0)
+    rows.partition(np.concatenate([hi, lo]) if not upper else hi, axis=1)
+    out = rows[np.arange(n_seg), hi]
     if not upper:
-        lo = np.maximum(starts + (counts - 1) // 2, 0)
-        out = 0.5 * (out + vs[np.minimum(lo, v.size - 1)])
+        out = 0.5 * (out + rows[np.arange(n_seg), lo])
     out[counts == 0] = np.nan
     return out
 
@@ -203,13 +236,13 @@ def adaptive_slopes(v: np.ndarray, seg: np.ndarray, n_seg: int, k: int) -> np.nd
     starts = np.cumsum(counts) - counts
     med = segment_median(v, seg, n_seg)
     dev = np.abs(v - med[seg])
-    mad = np.nan_to_num(segment_median(dev, seg, n_seg)) * 1.4826
+    mad = _nan_to_zero(segment_median(dev, seg, n_seg)) * 1.4826
     keep = dev <= 4.0 * (mad + 1e-9)[seg]
     nk = np.bincount(seg, weights=keep, minlength=n_seg)
     sk = np.bincount(seg, weights=np.where(keep, v, 0.0), minlength=n_seg)
     g_e = np.where(nk > 0, sk / np.maximum(nk, 1.0), med)
     g = g_e[seg]
-    gs = _shrink(g_e, np.nan_to_num(mad) / np.sqrt(np.maximum(nk, 1.0)))[seg]
+    gs = _shrink(g_e, _nan_to_zero(mad) / np.sqrt(np.maximum(nk, 1.0)))[seg]
     if k <= 0:
         return gs
     loc = _segment_moving_mean(v, seg, counts, starts, k)
@@ -328,10 +361,12 @@ def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarr
     starts = np.cumsum(counts) - counts
     j = np.arange(m)
     flat = np.ascontiguousarray(gray).ravel()
-    P = flat.take(base[:, None] + (start[:, None] + j[None, :]) * stride[:, None]).astype(
-        np.float64)
-    S = P[:, :tails].mean(axis=1)
-    E = P[:, -tails:].mean(axis=1)
+    # the windows pixel-major (pixel, column): a column's levels then broadcast along the
+    # long axis and the sum over a window's pixels adds whole rows (with a window's few
+    # pixels along the last axis, numpy runs both as a short loop per column)
+    P = flat.take(base + (start + j[:, None]) * stride).astype(np.float64)
+    S = _mean_of(P[:tails])
+    E = _mean_of(P[-tails:])
     S_s = _segment_moving_mean(S, seg, counts, starts, smooth)
     E_s = _segment_moving_mean(E, seg, counts, starts, smooth)
     js = (tails - 1) / 2
@@ -342,13 +377,13 @@ def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarr
         # otherwise tilt the line), except where a shadow's penumbra crosses the edge
         wts = np.arange(tails) - js
         wts = wts / float(wts @ wts)
-        both = adaptive_slopes(np.concatenate([P[:, :tails] @ wts, P[:, -tails:] @ wts]),
+        both = adaptive_slopes(np.concatenate([wts @ P[:tails], wts @ P[-tails:]]),
                                np.concatenate([seg, seg + ne]), 2 * ne, smooth)
-        slope_s, slope_e = both[:n, None], both[n:, None]
+        slope_s, slope_e = both[:n], both[n:]
     else:
-        slope_s = slope_e = np.zeros((n, 1))
-    Sj = S_s[:, None] + slope_s * (j[None, :] - js)
-    Ej = E_s[:, None] + slope_e * (j[None, :] - je)
+        slope_s = slope_e = np.zeros(n)
+    Sj = S_s + (j[:, None] - js) * slope_s
+    Ej = E_s + (j[:, None] - je) * slope_e
     contrast = E_s - S_s
     good = np.abs(contrast) >= min_contrast
     # a column that clips a corner or a neighbouring edge shows a partial step, judged
@@ -357,24 +392,25 @@ def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarr
     raw = E - S
     # (an edge without a good column has none to lose: 0 for its median, not NaN, which
     # the running sums would carry into the next edges)
-    med = np.nan_to_num(segment_median(raw[good], seg[good], ne))
+    med = _nan_to_zero(segment_median(raw[good], seg[good], ne))
     ref = _segment_moving_mean(np.where(good, raw, med[seg]), seg, counts, starts, 15)
     good &= np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
     denom = Sj - Ej
-    denom = np.where(good[:, None] & (np.abs(denom) > 1e-6), denom, 1.0)
+    denom = np.where(good & (np.abs(denom) > 1e-6), denom, 1.0)
     frac = (P - Ej) / denom
-    pos = start - 0.5 + frac.sum(axis=1)
+    pos = start - 0.5 + np.ones(m) @ frac
     rel = pos - start
     good &= (rel > tails) & (rel < m - 1 - tails)
     # the profile must be a single step: no sample far outside the level range
-    lo = np.minimum(Sj, Ej) - 0.35 * np.abs(contrast)[:, None]
-    hi = np.maximum(Sj, Ej) + 0.35 * np.abs(contrast)[:, None]
-    good &= np.all((lo < P) & (hi > P), axis=1)
-    for k in np.unique(seg[good]):
-        sel = good & (seg == k)
+    lo = np.minimum(Sj, Ej) - 0.35 * np.abs(contrast)
+    hi = np.maximum(Sj, Ej) + 0.35 * np.abs(contrast)
+    good &= np.all((lo < P) & (hi > P), axis=0)
+    for k, sel in enumerate(edge_rows(good, seg, ne)):
+        if sel.size == 0:
+            continue
         tk, pk = t[sel].astype(float), pos[sel]
         vertical = edges[k][2]
-        xy = np.column_stack([pk, tk]) if vertical else np.column_stack([tk, pk])
+        xy = xy_columns(pk, tk) if vertical else xy_columns(tk, pk)
         out[k] = EdgePoints(xy, contrast[sel], vertical)
     return out
 
@@ -411,23 +447,22 @@ def coarse_edges_many(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndar
         return out
     seg, t, start, base, stride = (np.concatenate(p) for p in zip(*parts, strict=True))
     flat = np.ascontiguousarray(gray).ravel()
-    P = flat.take(base[:, None] + (start[:, None] + np.arange(m)[None, :]) * stride[:, None]
-                  ).astype(np.float32)
-    P = (P[:, :-2] + P[:, 1:-1] + P[:, 2:]) / 3  # a little smoothing against noise
-    D = np.diff(P, axis=1)
+    # pixel-major (pixel, column), as in area_crossings_many
+    P = flat.take(base + (start + np.arange(m)[:, None]) * stride).astype(np.float32)
+    P = (P[:-2] + P[1:-1] + P[2:]) / 3  # a little smoothing against noise
+    D = np.diff(P, axis=0)
     # one sign per edge: the dominant one
     ne = len(segments)
-    up = segment_median(D.max(axis=1), seg, ne) >= segment_median(-D.min(axis=1), seg, ne)
+    up = segment_median(D.max(axis=0), seg, ne) >= segment_median(-D.min(axis=0), seg, ne)
     sign = np.where(up, 1.0, -1.0).astype(np.float32)[seg]
-    SD = sign[:, None] * D
-    k = np.argmax(SD, axis=1)
-    step = SD[np.arange(SD.shape[0]), k]
+    SD = sign * D
+    k = np.argmax(SD, axis=0)
+    step = SD[k, np.arange(SD.shape[1])]
     pos = (start + k + 1.5).astype(float)
     tf = t.astype(float)
-    for e in np.unique(seg):
-        sel = (seg == e) & (step * 3 >= min_step)
-        xy = np.column_stack([pos[sel], tf[sel]]) if vert[e] else np.column_stack(
-            [tf[sel], pos[sel]])
+    # (an edge without columns gets no points, and no line)
+    for e, sel in enumerate(edge_rows(step * 3 >= min_step, seg, ne)):
+        xy = xy_columns(pos[sel], tf[sel]) if vert[e] else xy_columns(tf[sel], pos[sel])
         out[e] = fit_line(EdgePoints(xy, step[sel], vert[e]), reject_sigma=3.0, min_points=8,
                           min_sigma=0.7)
     return out
@@ -441,7 +476,7 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
         return None
     k = 1 if pts.vertical else 0
     major, minor = pts.xy[:, k], pts.xy[:, 1 - k]
-    m0 = float(major.mean())
+    m0 = float(major.sum()) / n_pts  # (np.mean's sum and division, without its overhead)
     u = major - m0
     uu, vv = u, minor
     use: np.ndarray | None = None  # None: every point
@@ -451,15 +486,17 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
         nu = uu.size
         if nu < min_points:
             return None
-        um, vm = float(uu.mean()), float(vv.mean())
+        um, vm = float(uu.sum()) / nu, float(vv.sum()) / nu
         du = uu - um
         b = float(du @ (vv - vm)) / max(float(du @ du), 1e-12)
         a0 = vm - b * um
         res = minor - (a0 + b * u)
         ru = res if use is None else res[use]
-        mad = _median(np.abs(ru - _median(ru))) * 1.4826
+        h = ru.size // 2  # the upper medians, as _median (inline: this runs most often)
+        dev = np.abs(ru - np.partition(ru, h)[h])
+        mad = float(np.partition(dev, h)[h]) * 1.4826
         new = np.abs(res) < reject_sigma * max(mad, min_sigma)
-        same = bool(new.all()) if use is None else np.array_equal(new, use)
+        same = bool(new.all()) if use is None else bool((new == use).all())
         if same:
             break
         use = new
@@ -515,7 +552,7 @@ def residual_correlation(ln: Line, pts: EdgePoints, block: int = 8) -> float:
     r = pts.xy[:n, 1 - k] - ln.minor_at(pts.xy[:n, k])
     lim = 3.5 * max(ln.rms_px, 1e-6)
     r = np.clip(r, -lim, lim)  # outlying columns the fit rejected
-    r = r - r.mean()
+    r = r - r.sum() / r.size
     v = float(r @ r)
     if v <= 0.0:
         return 1.0

@@ -106,7 +106,7 @@ def order_corners(corners: np.ndarray, hint: np.ndarray | None = None) -> np.nda
     """Sort 4 corners by angle around their centre from -x (screen: TL, TR, BR, BL);
     with ``hint`` choose the cyclic order closest to it."""
     c = np.asarray(corners, float)
-    ctr = c.mean(axis=0)
+    ctr = c.sum(axis=0) / len(c)  # (the mean, without np.mean's overhead)
     ang = np.arctan2(c[:, 1] - ctr[1], c[:, 0] - ctr[0])
     c = c[np.argsort(ang)]
     if hint is not None:
@@ -119,6 +119,13 @@ def order_corners(corners: np.ndarray, hint: np.ndarray | None = None) -> np.nda
 
 
 _ROLLS = (np.arange(4)[None, :] + np.arange(4)[:, None]) % 4  # row k: np.roll(c, -k)
+_NEXT = _ROLLS[1]  # c[_NEXT]: each corner's successor (np.roll(c, -1, axis=0))
+
+
+def _side_lengths(c: np.ndarray) -> np.ndarray:
+    """The length of each side k (corner k to k + 1) of a quadrilateral."""
+    d = c[_NEXT] - c
+    return np.sqrt((d * d).sum(axis=1))
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> float:
@@ -169,8 +176,8 @@ def _profile_sides(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]]
 def _side_match(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """For each side of quadrilateral ``dst`` (corner k to k + 1), the index of the side
     of ``src`` nearest to it (by their midpoints): the same side in another order."""
-    ms = (src + np.roll(src, -1, axis=0)) / 2
-    md = (dst + np.roll(dst, -1, axis=0)) / 2
+    ms = (src + src[_NEXT]) / 2
+    md = (dst + dst[_NEXT]) / 2
     return np.argmin(((md[:, None, :] - ms[None, :, :]) ** 2).sum(axis=2), axis=1)
 
 
@@ -216,11 +223,12 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         # the +-10 px side search); if the holder is not there any more, fall back to a
         # full search
         try:
-            det = _refine(gray, order_corners(hint_arr), polarity, expected_size_px, hint_arr,
-                          min_contrast, max_rms_px, passes, lens, size_tolerance,
-                          refine == "profile", seeded=True, prior=prior)
-            if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px)
-                                                - order_corners(hint_arr), axis=1)) > _RESEED_PX:
+            seed = order_corners(hint_arr)
+            det = _refine(gray, seed, polarity, expected_size_px, hint_arr, min_contrast,
+                          max_rms_px, passes, lens, size_tolerance, refine == "profile",
+                          seeded=True, prior=prior)
+            if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px) - seed,
+                                                axis=1)) > _RESEED_PX:
                 # the holder moved far within the +-10 px side search (a wide sweep's
                 # steps): the fine windows sat off-centre and could straddle a nearby
                 # edge (a sample strip along a side), skewing a side by up to 2 px at a
@@ -304,8 +312,7 @@ def _seed_holds(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray
     lines = [ln for ln, _pts in sides if ln is not None]
     if len(lines) != 4:
         return False
-    for i, ln in enumerate(lines):
-        span = float(np.linalg.norm(corners[(i + 1) % 4] - corners[i]))
+    for span, ln in zip(_side_lengths(corners).tolist(), lines, strict=True):
         crossed = max(span - 20.0, 1.0) * max(abs(ln.n[0]), abs(ln.n[1]))  # columns (rows)
         if ln.rms_px > max_rms_px or ln.n_used < 0.8 * crossed:
             return False
@@ -361,18 +368,23 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
     """The detection from the sides' area-method fits: checked, widened for soft edges,
     refined by the profile fit where that agrees."""
     pol = _polarity(gray, corners)
+    # with the profile fit to follow, the area method's corner sigma is rarely reported:
+    # its residual correlations are left out here and measured only when it is
     det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                    size_tolerance)
+                    size_tolerance, inflate=not profile)
     hw, used = _HALF_WIDTH, sides
     if not det.ok and "rms" in det.reason:
         # a soft (defocused) edge overflows the +-5 px window: measure it in +-9 px
         wide = _fit_sides(gray, corners, 9, 12.0, min_contrast, lens)
         det2 = _assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                         size_tolerance)
+                         size_tolerance, inflate=not profile)
         if det2.ok:
             det = det2
             hw, used = 9, wide
-    if det.ok and profile:
+    if profile and not det.ok:
+        det = _assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
+                        size_tolerance)
+    elif profile:
         # the sides it passed, refined by the profile fit: kept when they pass as well
         fine, widths = _profile_sides(gray, used, hw, lens, blur)
         det3 = _assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
@@ -385,6 +397,9 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         if moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px:
             det = replace(det3, side_blur_px=tuple(
                 float(v) for v in widths[_side_match(corners, det3.corners_px)]))
+        else:
+            det = _assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
+                            size_tolerance)
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
     return det
@@ -393,8 +408,8 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
 def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
     """"dark" when the quadrilateral's middle is darker than just outside its sides."""
     h, w = gray.shape
-    ctr = c.mean(axis=0)
-    mids = (c + np.roll(c, -1, axis=0)) / 2
+    ctr = c.sum(axis=0) / len(c)  # (the mean, without np.mean's overhead)
+    mids = (c + c[_NEXT]) / 2
     v = mids - ctr
     v /= np.maximum(np.linalg.norm(v, axis=1), 1e-9)[:, None]
     at = np.vstack([ctr[None], mids + 12.0 * v])  # the middle, then just outside each side
@@ -409,15 +424,18 @@ def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
 
 def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, pol: str,
               expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
-              max_rms_px: float, lens: Lens | None = None, size_tolerance: float = 0.15
-              ) -> HolderDetection:
+              max_rms_px: float, lens: Lens | None = None, size_tolerance: float = 0.15,
+              inflate: bool = True) -> HolderDetection:
+    """The detection the sides' lines make: corners, checks, pose and uncertainty
+    (``inflate`` False: corner_sigma_px without the sides' residual correlation, for a
+    detection whose uncertainty is not reported)."""
     lines = [s[0] for s in sides]
     reasons = []
     edge_ok = []
     frac = []
+    spans = _side_lengths(corners).tolist()
     for i, (ln, _pts) in enumerate(sides):
-        span = float(np.linalg.norm(corners[(i + 1) % 4] - corners[i]))
-        expected = max(span - 20.0, 1.0) * 0.7  # columns/rows crossed, at most
+        expected = max(spans[i] - 20.0, 1.0) * 0.7  # columns/rows crossed, at most
         if ln is None:
             edge_ok.append(False)
             frac.append(0.0)
@@ -434,8 +452,8 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
     fit_sig = np.full(4, np.nan)
     # the fit's covariance counts the columns as independent: scaled up by how much its
     # residuals correlate along the side (JPEG blocks, texture, penumbrae)
-    infl = [residual_correlation(ln, _ideal(pts, lens)) if ln is not None and good else 1.0
-            for (ln, pts), good in zip(sides, edge_ok, strict=True)]
+    infl = [residual_correlation(ln, _ideal(pts, lens)) if ln is not None and good
+            and inflate else 1.0 for (ln, pts), good in zip(sides, edge_ok, strict=True)]
     for i in range(4):
         a, b = lines[i - 1], lines[i]
         if edge_ok[i - 1] and edge_ok[i] and a is not None and b is not None:
@@ -479,8 +497,7 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
     if lens is not None and lens.k1 != 0.0 and ok:
         out = lens.distort(out)
         center = lens.distort(center[None])[0]
-    corner_sigma = float(np.nanmax(sig)) if np.any(np.isfinite(sig)) else math.nan
-    fit_sigma = float(np.nanmax(fit_sig)) if np.any(np.isfinite(fit_sig)) else math.nan
+    corner_sigma, fit_sigma = _finite_max(sig), _finite_max(fit_sig)
     quality = min(frac) if frac else 0.0
     if math.isfinite(fit_sigma):
         quality *= max(0.0, 1.0 - fit_sigma / 0.5)
@@ -494,6 +511,12 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
                            fit_sigma_px=fit_sigma)
 
 
+def _finite_max(v: np.ndarray) -> float:
+    """The largest finite value of ``v`` (NaN when there is none): np.nanmax's value."""
+    f = v[np.isfinite(v)]
+    return float(f.max()) if f.size else math.nan
+
+
 def _point_sigma(ln: Line, p: np.ndarray) -> float:
     """:meth:`Line.point_sigma` in scalar arithmetic (it runs eight times a frame)."""
     m = float(p[1] if ln.vertical else p[0])
@@ -504,7 +527,7 @@ def _point_sigma(ln: Line, p: np.ndarray) -> float:
 
 def _outside_signs(lines: list[Line | None], corners: np.ndarray) -> list[int]:
     """Per side: +1 where the outside is brighter than the inside, -1 where darker."""
-    ctr = corners.mean(axis=0)
+    ctr = corners.sum(axis=0) / len(corners)
     out = []
     for ln in lines:
         if ln is None:

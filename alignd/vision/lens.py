@@ -28,13 +28,15 @@ class Lens:
         if self.k1 == 0.0 or p.size == 0:
             return p.reshape(-1, 2).copy()
         cx, cy = self.principal_px
-        xd = (p[:, 0, 0] - cx) / self.focal_px
-        yd = (p[:, 0, 1] - cy) / self.focal_px
-        xn, yn = xd.copy(), yd.copy()
+        d = np.stack([(p[:, 0, 0] - cx) / self.focal_px, (p[:, 0, 1] - cy) / self.focal_px])
+        n = d
         for _ in range(20):  # fixed point of x_d = x_n (1 + k1 r_n^2); converges fast
-            s = 1.0 + self.k1 * (xn * xn + yn * yn)
-            xn, yn = xd / s, yd / s
-        return np.column_stack([cx + self.focal_px * xn, cy + self.focal_px * yn])
+            s = 1.0 + self.k1 * (n[0] * n[0] + n[1] * n[1])
+            new = d / s
+            if (new == n).all():
+                break  # reached: every further step gives the same
+            n = new
+        return np.column_stack([cx + self.focal_px * n[0], cy + self.focal_px * n[1]])
 
     def distort(self, pts: np.ndarray) -> np.ndarray:
         """Ideal pinhole pixels (N, 2) -> frame pixels."""

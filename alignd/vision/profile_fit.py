@@ -31,7 +31,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from alignd.vision.edges import EdgePoints, adaptive_slopes, segment_median
+from alignd.vision.edges import (
+    EdgePoints,
+    adaptive_slopes,
+    edge_rows,
+    segment_median,
+    xy_columns,
+)
 
 __all__ = ["fit_crossings", "fit_crossings_blur", "step_response"]
 
@@ -115,8 +121,8 @@ def _tail_slopes(P: np.ndarray, edge: np.ndarray, n_edges: int
 
 def _start(P: np.ndarray, x: np.ndarray, b1: np.ndarray, b2: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray]:
-    a1 = P[:, :2].mean(axis=1) - b1 * x[:2].mean()
-    return a1, P[:, -2:].mean(axis=1) - b2 * x[-2:].mean() - a1
+    a1 = (P[:, 0] + P[:, 1]) / 2 - b1 * x[:2].mean()  # (as .mean(axis=1), at less cost)
+    return a1, (P[:, -2] + P[:, -1]) / 2 - b2 * x[-2:].mean() - a1
 
 
 def _fit(P: np.ndarray, x: np.ndarray, u: np.ndarray, s: np.ndarray, nu: np.ndarray,
@@ -164,36 +170,39 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     grid = np.arange(-reach, reach + _H, _H)
     ng = grid.size
     tS, tS1, _ = step_response(grid[None, :], blur[:, None], geo[:, 2:3], geo[:, 3:4])
-    # S and S' at the nodes and their steps to the next node (linear interpolation)
-    tabS, tabS1 = tS.ravel(), tS1.ravel()
-    dS = np.diff(tS, axis=1, append=tS[:, -1:]).ravel()
-    dS1 = np.diff(tS1, axis=1, append=tS1[:, -1:]).ravel()
-    X = x[None, :]
-    nu_c = geo[row, 1][:, None]
+    # S and S' at the nodes and their steps to the next node (linear interpolation), side
+    # by side: one gather reads all four
+    tab = np.stack([tS, np.diff(tS, axis=1, append=tS[:, -1:]),
+                    tS1, np.diff(tS1, axis=1, append=tS1[:, -1:])], axis=2).reshape(-1, 4)
+    # pixel-major arrays (pixel, row): each row's parameters then broadcast along the long
+    # axis and a window's sum over its pixels adds whole rows (with the few pixels of a
+    # window along the last axis, numpy runs both as a short loop per row)
+    xc = x[:, None]
+    nu = geo[row, 1]
     # the normal distance's table index is (nu (x - u) + reach) / H: its u-free part once
-    lead = (nu_c * X + reach) / _H
-    nu_h = nu_c[:, 0] / _H
-    base_idx = (row * ng)[:, None]
+    lead = (xc * nu + reach) / _H
+    nu_h = nu / _H
+    base_idx = row * ng
     a1, D = _start(P, x, b1, b2)
-    db = (b2 - b1)[:, None]
-    base1 = P - b1[:, None] * X
+    db = b2 - b1
+    base1 = np.ascontiguousarray(P.T) - xc * b1
     m = float(P.shape[1])
-    ones = np.ones(P.shape[1])  # row sums as a product (a fraction of .sum's cost)
+    ones = np.ones(P.shape[1])  # sums over the pixels as a product
     for _ in range(iterations):
-        f = lead - (nu_h * u)[:, None]
+        f = lead - nu_h * u
         np.minimum(np.maximum(f, 0.0, out=f), ng - 1.001, out=f)
         i = f.astype(np.intp)
         f -= i
         i += base_idx
-        S = tabS.take(i) + dS.take(i) * f
-        S1 = tabS1.take(i) + dS1.take(i) * f
-        amp = D[:, None] + db * X
-        r = base1 - a1[:, None] - amp * S
-        g = -nu_c * amp * S1
-        sS, sg = S @ ones, g @ ones
-        sSS, sSg, sgg = (np.einsum("ij,ij->i", S, S), np.einsum("ij,ij->i", S, g),
-                         np.einsum("ij,ij->i", g, g))
-        r0, rS, rg = r @ ones, np.einsum("ij,ij->i", r, S), np.einsum("ij,ij->i", r, g)
+        node = tab.take(i, axis=0)
+        S = node[..., 0] + node[..., 1] * f
+        S1 = node[..., 2] + node[..., 3] * f
+        amp = D + xc * db
+        r = base1 - a1 - amp * S
+        g = -nu * amp * S1
+        sS, sg = ones @ S, ones @ g
+        sSS, sSg, sgg = ones @ (S * S), ones @ (S * g), ones @ (g * g)
+        r0, rS, rg = ones @ r, ones @ (r * S), ones @ (r * g)
         # the symmetric [[m, sS, sg], [sS, sSS, sSg], [sg, sSg, sgg]] by its cofactors
         c00 = sSS * sgg - sSg * sSg
         c01 = sSg * sg - sS * sgg
@@ -206,7 +215,7 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         a1 += (c00 * r0 + c01 * rS + c02 * rg) / det
         D += (c01 * r0 + c11 * rS + c12 * rg) / det
         u = u + np.clip((c02 * r0 + c12 * rS + c22 * rg) / det, -1.0, 1.0)
-    misfit = np.sqrt(np.maximum(np.einsum("ij,ij->i", r, r) - r0 * r0 / m, 0.0) / m)
+    misfit = np.sqrt(np.maximum(ones @ (r * r) - r0 * r0 / m, 0.0) / m)
     return u, D, misfit
 
 
@@ -324,10 +333,10 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     good &= misfit <= _MISFIT * typical[r1.edge] + 0.5
     p = centre + u
     out = list(empty)
-    for k, i in enumerate(use):
-        sel = good & (r1.edge == k)
+    for k, sel in enumerate(edge_rows(good, r1.edge, ne)):
+        i = use[k]
         t, q = r1.t[sel].astype(float), p[sel]
         vertical = edges[i].vertical
-        xy = np.column_stack([q, t]) if vertical else np.column_stack([t, q])
+        xy = xy_columns(q, t) if vertical else xy_columns(t, q)
         out[i] = EdgePoints(xy, r1.contrast[sel], vertical)
     return out, widths
