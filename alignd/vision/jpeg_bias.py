@@ -6,13 +6,14 @@ along a near-vertical edge, which drifts slowly across the block columns, the er
 edge's position drifts with it: a bias in the angle. A static view repeats that error in
 every frame (the sensor noise dithers it only partly), so averaging frames keeps it.
 
-It is measured here by simulation (a parametric bootstrap): the coding's quantisation
-table is read off the frames themselves (a decoded block's DCT coefficients sit at
-multiples of its steps), the edge as fitted (its per-row levels and slopes, blur and line)
-is drawn into the mean frame, sensor noise like the frames' is added, the result is coded
-with that table and the edge fitted again. The angle's shift from the same noisy image
-uncoded (paired, so that the noise's own part of the fit cancels) is the bias; it is
-subtracted from the measured angle.
+It is measured here by simulation (a parametric bootstrap): the frames' libjpeg quality
+is found by coding a frame again at each quality (a decoded frame is the fixed point of
+its own quality), the edge as fitted (its per-row levels and slopes, blur and line) is
+drawn into the mean frame, sensor noise like the frames' is added, the result is coded at
+that quality and the edge fitted again. The angle's shift from the same noisy image
+uncoded (paired, so that the noise's own part of the fit cancels) is the bias. Frames
+coded with tables other than libjpeg's scaled standard ones are not recognised (no
+correction: the tilt is as before).
 """
 
 from __future__ import annotations

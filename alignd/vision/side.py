@@ -442,7 +442,9 @@ class TiltAverage:
     that understates its error shows up in the scatter of independent frames) and the
     fits' error clustered by row band across the frames (:func:`_u_blocks`: the part of a
     JPEG frame's coding error that the next frame repeats, which neither of the others
-    sees)."""
+    sees). On libjpeg-coded frames the coding's bias, measured by simulation
+    (:func:`_jpeg_bias`), is taken off ``tilt_deg`` and its simulation error added to
+    ``u_deg`` in quadrature."""
 
     tilt_deg: float
     u_deg: float
@@ -475,7 +477,8 @@ def measure_tilt_frames(images: list[np.ndarray], *,
                         sample_roi_px: tuple[int, int, int, int] | None = None) -> TiltAverage:
     """The tilt from several frames of the same view (the pre-check's measurement): the
     first frame is measured as :func:`measure_tilt` does, the others track its edges (a
-    full search again where an edge is not where it was)."""
+    full search again where an edge is not where it was). From 3 frames on, 8-bit grey
+    JPEG frames also have the coding's bias taken off (:class:`TiltAverage`)."""
     if not images:
         raise VisionError("side image: no frame to measure the tilt in")
     first = measure_tilt(images[0], pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px)
