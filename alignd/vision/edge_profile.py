@@ -27,7 +27,7 @@ from scipy.special import ndtr
 
 from alignd.vision.edges import Line
 
-__all__ = ["ProfileFit", "Spread", "fit_vertical_edge"]
+__all__ = ["ProfileFit", "Spread", "fit_vertical_edge", "solve_rows", "step_basis"]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 # one JPEG block row: the unit of the per-band error terms (side.py merges them further)
@@ -80,7 +80,7 @@ Spread = Literal["optics", "pixel grid"]
 _K = np.arange(-8, 9, dtype=np.float64)  # taps of a blur on the pixel grid (4 sigma at 2 px)
 
 
-def _basis(u: np.ndarray, s: float, spread: Spread = "optics"
+def step_basis(u: np.ndarray, s: float, spread: Spread = "optics"
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The step profile F (minus 1/2) at offset u, dF/du, dF/ds, and the per-row basis
     [1, u, F, u F] (N, W, 4).
@@ -109,7 +109,7 @@ def _basis(u: np.ndarray, s: float, spread: Spread = "optics"
     return F, dFu, dFs, B
 
 
-def _solve_rows(B: np.ndarray, Y: np.ndarray) -> np.ndarray:
+def solve_rows(B: np.ndarray, Y: np.ndarray) -> np.ndarray:
     """Per-row least squares: coefficients (N, 4, K) of Y (N, W, K) on B (N, W, 4)
     (batched matrix products: einsum's generic loop was most of the side camera's time)."""
     Bt = B.transpose(0, 2, 1)
@@ -148,7 +148,7 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
 
     Windows of 2 * half_width + 1 px, fixed by the start line, stay inside ``x_limits``
     (x0, x1 exclusive; default the image). ``spread``: how the blur arises (see
-    :func:`_basis`). ``clip_levels``: the sensor's black and full-scale levels in ``gray``'s
+    :func:`step_basis`). ``clip_levels``: the sensor's black and full-scale levels in ``gray``'s
     units (:func:`alignd.vision.edges.as_gray` scales every bit depth to 0-255): rows whose
     step comes within 3 noise sigma of either are left out, since clipping flattens one side
     of the profile and the noise no longer averages out there (a saturated sample under a
@@ -182,8 +182,8 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     for _ in range(4):
         x, _r, _c, _JtJ = _gauss_newton(P[use], cols[use], yc[use], x, spread)
         u_all = cols - (x[0] + x[1] * yc)[:, None]
-        _F, _dFu, _dFs, B = _basis(u_all, x[2], spread)
-        coef = _solve_rows(B, P[..., None])[..., 0]
+        _F, _dFu, _dFs, B = step_basis(u_all, x[2], spread)
+        coef = solve_rows(B, P[..., None])[..., 0]
         model = (B @ coef[..., None])[..., 0]
         r_all = P - model
         res_rows = np.sqrt(np.mean(r_all ** 2, axis=1))
@@ -235,12 +235,12 @@ def _jacobian_at(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray,
     """Residuals (N, W), the per-row coefficients (N, 4) and the projected Jacobian
     (N, W, 3) of the model B c with respect to a, b, s (c held) at ``p`` (no step taken)."""
     u = cols - (p[0] + p[1] * yc)[:, None]
-    F, dFu, dFs, B = _basis(u, p[2], spread)
-    c = _solve_rows(B, P[..., None])[..., 0]
+    F, dFu, dFs, B = step_basis(u, p[2], spread)
+    c = solve_rows(B, P[..., None])[..., 0]
     r = P - (B @ c[..., None])[..., 0]
     da = -(c[:, 1:2] + c[:, 2:3] * dFu + c[:, 3:4] * (F + u * dFu))
     D = np.stack([da, da * yc[:, None], (c[:, 2:3] + c[:, 3:4] * u) * dFs], axis=2)
-    D = D - B @ _solve_rows(B, D)
+    D = D - B @ solve_rows(B, D)
     return p, r, c, D
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from alignd.vision.edge_profile import Spread, _basis, _solve_rows, fit_vertical_edge
+from alignd.vision.edge_profile import Spread, fit_vertical_edge, solve_rows, step_basis
 
 __all__ = ["EdgeBias", "edge_angle_bias", "jpeg_quality"]
 
@@ -103,8 +103,8 @@ def edge_angle_bias(frames: list[np.ndarray], quality: int, a: float, b: float, 
     # noise and coding error would otherwise be drawn in)
     P = mean[rows[:, None], cols]
     u = cols - (a - x0 + b * yc)[:, None]
-    _F, _dFu, _dFs, B = _basis(u, blur_px, spread)
-    coef = _solve_rows(B, P[..., None])[..., 0]
+    _F, _dFu, _dFs, B = step_basis(u, blur_px, spread)
+    coef = solve_rows(B, P[..., None])[..., 0]
     k = np.ones(9) / 9.0
     sm = np.stack([np.convolve(np.pad(coef[:, i], 4, mode="edge"), k, mode="valid")
                    for i in range(4)], axis=1)
