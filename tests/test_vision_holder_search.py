@@ -148,3 +148,16 @@ def test_bracketed_selection_is_np_partition(n: int) -> None:
         a = v.astype(np.float32)
         np.testing.assert_array_equal(holder_search._select(a, ks), np.partition(a, ks)[ks])
         assert float(np.mean(holder_search._select(a, ks))) == float(np.median(a))
+
+
+@pytest.mark.parametrize("n", [1, 2, 4095, 57600])
+def test_percentiles_are_np_percentile(n: int) -> None:
+    """The ladder's contrast stretch reads the 0.5 and 99.5 percentiles by two order
+    statistics each: the same numbers as numpy's linear interpolation, ties and all."""
+    rng = np.random.default_rng(n)
+    for v in (rng.normal(100, 30, n), rng.integers(0, 4, n), np.full(n, 7.0),
+              np.round(rng.uniform(0, 255, n), 1)):
+        for a in (v.astype(np.float32), v.astype(np.float64)):
+            for qs in ((0.5, 99.5), (0.0, 100.0), (37.3, 50.0)):
+                got = holder_search._percentiles(a, qs)
+                assert got == np.percentile(a, qs).tolist()

@@ -464,13 +464,40 @@ def coarse_edges_many(gray: np.ndarray, segments: list[tuple[np.ndarray, np.ndar
     for e, sel in enumerate(edge_rows(step * 3 >= min_step, seg, ne)):
         xy = xy_columns(pos[sel], tf[sel]) if vert[e] else xy_columns(tf[sel], pos[sel])
         out[e] = fit_line(EdgePoints(xy, step[sel], vert[e]), reject_sigma=3.0, min_points=8,
-                          min_sigma=0.7)
+                          min_sigma=0.7, start=_consensus(tf[sel], pos[sel]))
     return out
 
 
+def _consensus(major: np.ndarray, minor: np.ndarray, band: float = 1.5, pairs: int = 24
+               ) -> np.ndarray | None:
+    """The points within ``band`` px of the line most of them lie on (None: too few).
+
+    A run of columns whose strongest step is another edge (a floor hole or a shadow
+    touching the side: a third of a short side, all at one end) tilts a least-squares
+    line so far that its residuals' spread hides them, and the rejection keeps them. The
+    lines through point pairs half the points apart (at most ``pairs`` of them, evenly
+    spread: a run of outliers at one end, a fraction f of the points, still leaves 1 - 2f
+    of them with both points on the edge) are each scored by the points within the band
+    (one matrix); the best one's inliers start the fit, which may take any point back.
+    """
+    n = major.size
+    half = n // 2
+    if half < 4:
+        return None
+    i = np.unique(np.linspace(0, n - half - 1, min(n - half, pairs)).astype(np.intp))
+    j = i + half
+    slope = (minor[j] - minor[i]) / (major[j] - major[i])
+    pred = minor[i, None] + (major[None] - major[i, None]) * slope[:, None]  # (pairs, n)
+    near = np.abs(minor[None] - pred) <= band
+    best = near[int(np.argmax(near.sum(axis=1)))]
+    return best if int(np.count_nonzero(best)) >= 8 else None
+
+
 def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
-             iterations: int = 4, min_sigma: float = 0.01) -> Line | None:
-    """Least-squares line minor = a + b * major with iterative robust rejection."""
+             iterations: int = 4, min_sigma: float = 0.01, start: np.ndarray | None = None
+             ) -> Line | None:
+    """Least-squares line minor = a + b * major with iterative robust rejection;
+    ``start`` (bool per point): the points the first fit uses (default: all)."""
     n_pts = pts.xy.shape[0]
     if n_pts < min_points:
         return None
@@ -478,8 +505,11 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
     major, minor = pts.xy[:, k], pts.xy[:, 1 - k]
     m0 = float(major.sum()) / n_pts  # (np.mean's sum and division, without its overhead)
     u = major - m0
-    uu, vv = u, minor
     use: np.ndarray | None = None  # None: every point
+    if start is not None and not bool(start.all()):
+        use = start
+        iterations += 1  # the start is a guess, not an iteration's result
+    uu, vv = (u, minor) if use is None else (u[use], minor[use])
     a0 = b = 0.0
     res = minor
     for _ in range(iterations):

@@ -244,7 +244,8 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         except VisionError as exc:
             reasons.append(f"at the previous corners: {exc}")
     # (a frame the previous corners fit is usable; only a full search needs the check)
-    gray = as_gray(image, "top image")
+    if gray is raw:  # the 8-bit frame itself: the search wants floats (any other frame
+        gray = as_gray(image, "top image")  # was converted above, once is enough)
     check_usable(gray, min_contrast, "top image")
     tried: list[np.ndarray] = []
     last: HolderDetection | None = None

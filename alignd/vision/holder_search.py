@@ -52,7 +52,7 @@ def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
     h, w = gray.shape
     small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
     small = cv2.GaussianBlur(small, (0, 0), 1.0)
-    lo, hi = np.percentile(small, [0.5, 99.5])
+    lo, hi = _percentiles(small.ravel(), (0.5, 99.5))
     u8 = np.clip((small - lo) * (255.0 / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
     otsu, _ = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     # Otsu alone fails when shadows or a third level split the histogram: try a ladder of
@@ -154,6 +154,28 @@ def _select(a: np.ndarray, ks: list[int]) -> np.ndarray:
     if min(rel) >= 0 and max(rel) < mid.size:
         return np.partition(mid, rel)[rel]
     return np.partition(a, ks)[ks]  # the subsample misled the brackets
+
+
+def _percentiles(a: np.ndarray, qs: tuple[float, ...]) -> list[float]:
+    """``np.percentile(a, qs)`` (linear interpolation) of a 1-D float array without NaN,
+    exactly, each from its two order statistics by :func:`_select`: numpy partitions the
+    whole array around both ends at once, a millisecond of a 4 ms ladder."""
+    n = a.size
+    out = []
+    for q in np.true_divide(np.asarray(qs, float), 100):
+        v = (n - 1) * q
+        i = min(max(math.floor(v), 0), n - 1)
+        j = min(i + 1, n - 1) if v < n - 1 else i
+        pair = _select(a, [i, j])
+        prev, nxt = pair[:1], pair[1:]
+        t = np.asarray([v - math.floor(v)])
+        # numpy's _lerp, step by step in the same dtypes (the pair's, then float64)
+        diff = nxt - prev
+        val = prev + diff * t
+        if t[0] >= 0.5:
+            val = nxt - diff * (1 - t)
+        out.append(float(val[0]))
+    return out
 
 
 def _noise_sigma(img: np.ndarray) -> float:
