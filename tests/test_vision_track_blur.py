@@ -48,9 +48,11 @@ def test_a_held_holder_reuses_the_blur_and_keeps_its_corners(
         img, truth = _frame(4.0 + 0.02 * k, rng)
         before = calls[0]
         fresh = track_holder(img, hint=prev.corners_px)
-        assert calls[0] == before + 1  # corners alone: the blur is estimated
+        # corners alone: the blur is estimated (once more in a wider window for a soft edge)
+        assert calls[0] > before
+        estimated = calls[0]
         reused = track_holder(img, hint=prev)
-        assert calls[0] == before + 1  # the detection: its blur is reused
+        assert calls[0] == estimated  # the detection: its blur is reused
         assert reused.ok and fresh.ok
         assert reused.side_blur_px == prev.side_blur_px
         got_r = order_corners(reused.corners_px, truth)

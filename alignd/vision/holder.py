@@ -59,6 +59,10 @@ log = logging.getLogger(__name__)
 # RMS near 1 (see tests/test_vision_holder_sigma.py)
 _SIDE_COMMON_PX = 0.02
 _AGREE_PX, _AGREE_SIGMA = 0.05, 3.0  # profile vs area corners: allowed difference
+# a side blurred more than this (Gaussian width, px) reaches the tails of the area method's
+# +-5 px window: refined corners it rejects are checked once more against its +-9 px ones
+# (1.0 and 1.2 alike on the corpus)
+_SOFT_BLUR_PX = 1.0
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 
@@ -395,7 +399,20 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         # the window) and the model-free area method's corners stand
         moved = float(np.max(np.linalg.norm(det3.corners_px - det.corners_px, axis=1))) \
             if det3.ok else math.inf
-        if moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px:
+        agree = moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px
+        if (det3.ok and not agree and hw == _HALF_WIDTH
+                and np.nanmax(widths, initial=0.0) > _SOFT_BLUR_PX):
+            # a soft side's transition overflows the area method's +-5 px, which then
+            # errs by 0.1-0.3 px itself (its tails inside the blur): a second opinion in
+            # +-9 px may confirm the refined corners (the +-5 px ones stay the fallback)
+            wide = _fit_sides(gray, corners, 9, 12.0, min_contrast, lens)
+            det9 = _assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
+                             size_tolerance, inflate=False)
+            if det9.ok:
+                moved = float(np.max(np.linalg.norm(det3.corners_px - det9.corners_px,
+                                                    axis=1)))
+                agree = moved <= _AGREE_PX + _AGREE_SIGMA * det9.fit_sigma_px
+        if agree:
             det = replace(det3, side_blur_px=tuple(
                 float(v) for v in widths[_side_match(corners, det3.corners_px)]))
         else:
