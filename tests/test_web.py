@@ -206,9 +206,12 @@ def _wait(d: Any, pred: Callable[[Any], Any], what: str, timeout_s: float = 60.0
 
 def test_browser_dashboard_watches_a_run(browser: Any) -> None:
     d = browser
-    # a slow clock and full sweeps: a run lasts long enough to watch its steps advance
-    with sim_daemon(time_scale=10.0, procedure={"sweep_steps": 15, "max_iterations": 1,
-                                               "sweep_deg": 10.0}, args=WEB, env=REAL) as dp:
+    # The check's one sweep turns +-45 deg in 11 steps of 9 deg. In real time (time scale
+    # 1) each step's motion alone takes 0.45 s at 20 deg/s, so the page (it polls every
+    # 0.5 s) sees most steps however fast the machine is; at time scale 10 the steps were
+    # as short as the frame processing, and a faster machine once showed only two.
+    with sim_daemon(time_scale=1.0, procedure={"max_iterations": 1}, args=WEB,
+                    env=REAL) as dp:
         url = dp.client.status()["web"]
         d.get(url)
         _wait(d, lambda d: _text(d, "#state") == "idle", "state idle")
