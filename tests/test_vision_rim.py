@@ -234,6 +234,14 @@ def test_default_tools_fit_the_rim_on_the_configured_frames() -> None:
                                 seq=k) for k in range(3)])
     assert r.frames == 3 and r.u is not None and 0 < r.u < 0.003
     assert r.eccentricity == pytest.approx(0.04, abs=3 * r.u)
+    # commissioning's rim item measures the same mean of frames, with its uncertainty
+    assert tools.rim is not None
+    info = tools.rim([Frame(image=np.clip(np.rint(clean + rng.normal(0.0, 2.0, clean.shape)),
+                                          0, 255).astype(np.uint8), timestamp=float(k), seq=k)
+                      for k in range(3)], None, None)
+    assert info.eccentricity_u is not None and 0 < info.eccentricity_u < 0.003
+    assert info.eccentricity == pytest.approx(0.04, abs=3 * info.eccentricity_u)
+    assert info.zenith_deg is None  # no rim radius or camera height given
     d["procedure"] = {**d.get("procedure", {}), "precheck": {"rim_frames": 0}}
     with pytest.raises(ConfigError, match="rim_frames"):
         parse_config(d)

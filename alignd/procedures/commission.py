@@ -455,8 +455,11 @@ class _Commission:
                               "zenith not measured", name="not measured"))
             return
         try:
-            info = self.tools.rim(grab_fresh(cam, cam.clock.now()), self.c.rim_radius_mm,
-                                  self.c.top_camera_height_mm)
+            # the frames the alignment's rim pre-check averages (at small e one frame's
+            # noise is most of e's uncertainty)
+            frames = [grab_fresh(cam, cam.clock.now())
+                      for _ in range(self.cfg.procedure.precheck.rim_frames)]
+            info = self.tools.rim(frames, self.c.rim_radius_mm, self.c.top_camera_height_mm)
         except AligndError as exc:
             self._add(Finding("top.rim", "warn", f"rim not measurable: {exc}",
                               name="not measured"))
@@ -465,11 +468,14 @@ class _Commission:
         e_max = self.cfg.procedure.precheck.max_eccentricity
         verdict: FindingVerdict = "pass" if info.eccentricity <= e_max else "fail"
         zen = "" if info.zenith_deg is None else f", camera zenith {info.zenith_deg:.2f} deg"
+        u = "" if info.eccentricity_u is None else f" +- {info.eccentricity_u:.4f}"
         self._add(Finding("top.rim", verdict,
-                          f"rim eccentricity {info.eccentricity:.4f} (limit {e_max:g}){zen}",
+                          f"rim eccentricity {info.eccentricity:.4f}{u} (limit {e_max:g}; mean "
+                          f"of {len(frames)} frames){zen}",
                           value={"eccentricity": info.eccentricity,
                                  "zenith_deg": info.zenith_deg,
                                  "center_px": info.center_px},
+                          sigma={"eccentricity": info.eccentricity_u},
                           expected={"max_eccentricity": e_max},
                           name="" if verdict == "pass" else "camera not on the axis"))
 

@@ -40,6 +40,7 @@ class RimInfo:
     center_px: tuple[float, float]
     eccentricity: float
     zenith_deg: float | None  # None without the rim radius and camera height
+    eccentricity_u: float | None = None  # standard uncertainty of e (k = 1)
 
 
 @dataclass(frozen=True)
@@ -104,7 +105,7 @@ class Tools:
     tilt: ScalarFn | None = None
     eccentricity: ScalarFn | None = None
     names: dict[str, str] | None = None
-    rim: Callable[[Frame, float | None, float | None], RimInfo] | None = None
+    rim: Callable[[list[Frame], float | None, float | None], RimInfo] | None = None
     side: Callable[[Frame], SideInfo] | None = None
     tilt_frames: Callable[[list[Frame]], TiltReading] | None = None  # several frames at once
     rim_frames: Callable[[list[Frame]], RimReading] | None = None  # several frames at once
@@ -222,11 +223,11 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
         u = fit.eccentricity_std
         return RimReading(float(fit.eccentricity), float(u) if u == u else None, len(frames))
 
-    def rim(frame: Frame, radius_mm: float | None, height_mm: float | None) -> RimInfo:
-        res = vision.fit_rim(frame.gray, radius_mm, height_mm)
-        z = float(res.camera_zenith_deg)
+    def rim(frames: list[Frame], radius_mm: float | None, height_mm: float | None) -> RimInfo:
+        res = vision.fit_rim_frames([f.gray for f in frames], radius_mm, height_mm)
+        z, u = float(res.camera_zenith_deg), float(res.eccentricity_std)
         return RimInfo((float(res.center_px[0]), float(res.center_px[1])),
-                       float(res.eccentricity), z if z == z else None)
+                       float(res.eccentricity), z if z == z else None, u if u == u else None)
 
     def side(frame: Frame) -> SideInfo:
         res = vision.measure_tilt(frame.gray, pole_roi_px=pole_roi,
