@@ -135,24 +135,32 @@ def test_tracking_refines_as_the_full_search_does() -> None:
     np.testing.assert_allclose(again.corners_px, det.corners_px, atol=0.01)
 
 
+def _noisy_edge(rng: np.random.Generator, size: tuple[int, int], blur: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A straight 40 DN step through the image's centre (+-0.5 px) at 5-40 deg, blurred by
+    ``blur`` px, with 3 DN of sensor noise: the image, a point on the edge, its direction
+    u and its normal v (toward the bright side)."""
+    w, h = size
+    ras = Raster((w, h), 120.0, (w / 2, h / 2), 0.0)
+    t = math.radians(float(rng.uniform(5.0, 40.0)))
+    c = np.array([w / 2, h / 2]) + rng.uniform(-0.5, 0.5, 2)
+    u = np.array([math.cos(t), math.sin(t)])
+    v = np.array([-u[1], u[0]])
+    poly = np.array([c - 200 * u, c + 200 * u, c + 200 * u + 200 * v, c - 200 * u + 200 * v])
+    img = np.full((h, w), 60.0, np.float32)
+    img += (100.0 - img) * coverage(Polygon(poly), ras, (0, 0, w, h))
+    img = cv2.GaussianBlur(img, (0, 0), blur) + rng.normal(0.0, 3.0, (h, w)).astype(np.float32)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), c, u, v
+
+
 def _short_edge_offsets(trials: int, seed: int) -> np.ndarray:
     """The mean signed offset of the fitted crossings from the true line, per noise
     realisation, of a short (60 px) edge of 40 DN contrast without any lighting gradient,
     blurred 1 px, with 3 DN of sensor noise (the corpus's typical small-holder side)."""
     rng = np.random.default_rng(seed)
-    w, h = 120, 80
-    ras = Raster((w, h), 120.0, (60.0, 40.0), 0.0)
     out = []
     for _ in range(trials):
-        t = math.radians(float(rng.uniform(5.0, 40.0)))
-        c = np.array([60.0, 40.0]) + rng.uniform(-0.5, 0.5, 2)
-        u = np.array([math.cos(t), math.sin(t)])
-        v = np.array([-u[1], u[0]])
-        poly = np.array([c - 200 * u, c + 200 * u, c + 200 * u + 200 * v, c - 200 * u + 200 * v])
-        img = np.full((h, w), 60.0, np.float32)
-        img += (100.0 - img) * coverage(Polygon(poly), ras, (0, 0, w, h))
-        img = cv2.GaussianBlur(img, (0, 0), 1.0) + rng.normal(0.0, 3.0, (h, w)).astype(np.float32)
-        img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        img, c, u, v = _noisy_edge(rng, (120, 80), 1.0)
         pts = edge_points(img, c - 30 * u, c + 30 * u, half_width=5, margin_px=0.0)
         fine = fit_crossings(img, [pts])[0]
         out.append(float(((fine.xy - c) @ v).mean()))
@@ -178,19 +186,9 @@ def test_soft_edge_blur_is_measured_whole(blur: float) -> None:
     0.82 of it at 1.8 px); the profile fit's window is then too narrow for the edge and
     the model too sharp for it (corpus optics scenes: corner RMS 0.085 -> 0.073 px)."""
     rng = np.random.default_rng(int(blur * 10))
-    w, h = 140, 100
-    ras = Raster((w, h), 120.0, (70.0, 50.0), 0.0)
     widths = []
     for _ in range(30):
-        t = math.radians(float(rng.uniform(5.0, 40.0)))
-        c = np.array([70.0, 50.0]) + rng.uniform(-0.5, 0.5, 2)
-        u = np.array([math.cos(t), math.sin(t)])
-        v = np.array([-u[1], u[0]])
-        poly = np.array([c - 200 * u, c + 200 * u, c + 200 * u + 200 * v, c - 200 * u + 200 * v])
-        img = np.full((h, w), 60.0, np.float32)
-        img += (100.0 - img) * coverage(Polygon(poly), ras, (0, 0, w, h))
-        img = cv2.GaussianBlur(img, (0, 0), blur) + rng.normal(0.0, 3.0, (h, w)).astype(np.float32)
-        img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        img, c, u, _v = _noisy_edge(rng, (140, 100), blur)
         pts = edge_points(img, c - 30 * u, c + 30 * u, half_width=5, margin_px=0.0)
         fine, wd = fit_crossings_blur(img, [pts])
         assert fine[0].xy.shape[0] > 20
