@@ -512,12 +512,20 @@ class _Run:
             return f"widening the sweep to +-{nxt.half_deg:g} deg"
         return f"averaging {nxt.frames_per_step} frames per step"
 
+    @staticmethod
+    def _motion_floor_um(m: Measurement) -> float:
+        """The residual error motion that no further sweep averages out: the budget's
+        contribution less the sweeps' excess scatter, which falls with their number."""
+        u = m.budget.get("residual error motion")
+        excess2 = 2.0 * m.excess_um ** 2 / max(m.n_sweeps, 1)  # its part of u^2
+        return math.sqrt(max(u * u - excess2, 0.0))
+
     def _floor_above(self, m: Measurement, u_um: float) -> bool:
         """Whether no better measurement can bring U under ``u_um``: U cannot fall below k
         times the residual error motion, which more sweeps and frames do not average out.
         With a runout map that floor falls with the swept angle, so only a sweep as wide
         as allowed is at it; without one it is ``procedure.systematic_um`` at any width."""
-        return (m.budget.k * m.budget.get("residual error motion") >= u_um
+        return (m.budget.k * self._motion_floor_um(m) >= u_um
                 and (not m.runout_corrected
                      or self.plan.half_deg >= self._widest_deg() - 1e-6))
 
@@ -529,7 +537,7 @@ class _Run:
         fix = ("re-run alignctl commission" if self.runout is not None
                else "commission the rig (alignctl commission) for a runout map")
         return (f"the residual error motion alone gives U >= "
-                f"{m.budget.k * m.budget.get('residual error motion'):.1f} um, more "
+                f"{m.budget.k * self._motion_floor_um(m):.1f} um, more "
                 f"than the {need:.1f} um between the offset and the tolerance; {fix}")
 
     def _record(self, kind: str, m: Measurement, **extra: Any) -> dict[str, Any]:
