@@ -228,13 +228,7 @@ def test_default_tools_fit_the_rim_on_the_configured_frames() -> None:
     cfg = parse_config(d)
     assert cfg.procedure.precheck.rim_frames == 8
     tools = default_tools(cfg)
-    assert tools.rim_frames is not None
-    r = tools.rim_frames([Frame(image=np.clip(np.rint(clean + rng.normal(0.0, 2.0, clean.shape)),
-                                              0, 255).astype(np.uint8), timestamp=float(k),
-                                seq=k) for k in range(3)])
-    assert r.frames == 3 and r.u is not None and 0 < r.u < 0.003
-    assert r.eccentricity == pytest.approx(0.04, abs=3 * r.u)
-    # commissioning's rim item measures the same mean of frames, with its uncertainty
+    # the pre-check and commissioning's rim item both measure the mean of the frames
     assert tools.rim is not None
     info = tools.rim([Frame(image=np.clip(np.rint(clean + rng.normal(0.0, 2.0, clean.shape)),
                                           0, 255).astype(np.uint8), timestamp=float(k), seq=k)

@@ -593,7 +593,7 @@ class _Run:
         else:
             raise VisionError(f"holder not found in {HOLDER_LOOK_FRAMES} top-camera frames "
                               f"({det.reason or 'no detection'}); nothing moved")
-        if self.tools.eccentricity is not None or self.tools.rim_frames is not None:
+        if self.tools.eccentricity is not None or self.tools.rim is not None:
             check_abort(self.abort)
             self._emit("precheck", "top-camera eccentricity")
             try:
@@ -632,9 +632,9 @@ class _Run:
     def _rim(self, top: Camera, n: int) -> RimReading:
         """The rim's eccentricity on the mean of ``n`` top frames, each exposed after the
         one before (at small e one frame's noise dominates e's uncertainty). Tools without
-        a multi-frame fit give ``tools.eccentricity`` of one frame, without uncertainty."""
+        a rim fit give ``tools.eccentricity`` of one frame, without uncertainty."""
         assert self.tools is not None
-        if self.tools.rim_frames is None:
+        if self.tools.rim is None:
             assert self.tools.eccentricity is not None
             return RimReading(float(self.tools.eccentricity(grab_fresh(top, top.clock.now()))),
                               None, 1)
@@ -642,7 +642,8 @@ class _Run:
         for _ in range(n):
             check_abort(self.abort)
             frames.append(grab_fresh(top, top.clock.now()))
-        return self.tools.rim_frames(frames)
+        info = self.tools.rim(frames, None, None)  # the ellipse alone: no zenith needed
+        return RimReading(info.eccentricity, info.eccentricity_u, len(frames))
 
     def _tilt(self, side: Camera, n: int) -> TiltReading:
         """The sample tilt over ``n`` side frames, each exposed after the one before (a

@@ -108,7 +108,6 @@ class Tools:
     rim: Callable[[list[Frame], float | None, float | None], RimInfo] | None = None
     side: Callable[[Frame], SideInfo] | None = None
     tilt_frames: Callable[[list[Frame]], TiltReading] | None = None  # several frames at once
-    rim_frames: Callable[[list[Frame]], RimReading] | None = None  # several frames at once
 
 
 def expected_holder_px(cfg: AligndConfig) -> tuple[float, float] | None:
@@ -218,11 +217,6 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     def eccentricity(frame: Frame) -> float:
         return float(vision.fit_rim(frame.gray).eccentricity)
 
-    def rim_frames(frames: list[Frame]) -> RimReading:
-        fit = vision.fit_rim_frames([f.gray for f in frames], None, None)
-        u = fit.eccentricity_std
-        return RimReading(float(fit.eccentricity), float(u) if u == u else None, len(frames))
-
     def rim(frames: list[Frame], radius_mm: float | None, height_mm: float | None) -> RimInfo:
         res = vision.fit_rim_frames([f.gray for f in frames], radius_mm, height_mm)
         z, u = float(res.camera_zenith_deg), float(res.eccentricity_std)
@@ -238,7 +232,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
                         float(res.pole_angle_deg), float(np.mean(xs)), float(np.mean(xp)))
 
     return Tools(track=track, solve=solve, tilt=tilt, eccentricity=eccentricity,
-                 rim=rim, side=side, tilt_frames=tilt_frames, rim_frames=rim_frames,
+                 rim=rim, side=side, tilt_frames=tilt_frames,
                  names={"track": "alignd.vision.track_holder",
                         "solve": "alignd.solve.solve_centre(auto)",
                         "tilt": "alignd.vision.measure_tilt",
