@@ -19,8 +19,11 @@ the crossing has about half the area method's noise at the blurs of the corpus.
 
 The slopes b1 and b2 come from the window's tails, as in the area method (one value per
 edge, followed locally only where a penumbra crosses it): free per column they would cost
-the position most of its precision. The fit starts from the area method's crossing (good to
-a tenth of a pixel), so a few Gauss-Newton iterations suffice.
+the position most of its precision. On a soft edge they are measured again after a first
+fit, with the fitted step's own tail taken off and from longer tails: there a slope's error
+moves the crossing most (about 16 px per (DN/px) / DN of contrast at a blur of 2 px). The
+fit starts from the area method's crossing (good to a tenth of a pixel), so a few
+Gauss-Newton iterations suffice.
 """
 
 from __future__ import annotations
