@@ -79,6 +79,12 @@ class PrecheckConfig(Strict):
     rim_frames: int = Field(8, ge=1, le=100, description=(
         "top-camera frames averaged for the rim's eccentricity; the run reports e and its "
         "standard uncertainty (at e ~ 0.01-0.03 one frame's e is uncertain to 0.001-0.005)"))
+    rim_turn_deg: float = Field(0.0, ge=0, le=45, description=(
+        "turntable step (deg) between the rim frames: 0 takes them all where the turntable "
+        "stands; > 0 turns the disc between frames (centred on where it stands, inside the "
+        "soft limits; it goes back afterwards), so a textured disc's pattern, which no "
+        "number of still frames averages, moves and averages out: 180 / rim_frames (22.5 "
+        "for 8 frames) cancels its second harmonic, what moves e (docs/vision.md, Rim)"))
     action: Literal["warn", "refuse"] = "warn"
 
 

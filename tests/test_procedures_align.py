@@ -451,3 +451,57 @@ def test_without_prediction_every_move_is_followed_by_a_sweep() -> None:
     assert res.verdict == "aligned", res.reason
     assert res.sweeps == res.iterations + 1 and not res.details["final"]["predicted"]
     assert "predicted" not in res.reason
+
+
+def _rim_recording_tools(seed: int, seen: list[list[float]]) -> Any:
+    """Stand-in tools whose rim fit records each frame's true turntable angle."""
+    from dataclasses import replace
+
+    from alignd.procedures.tools import RimInfo
+
+    def rim_fn(frames: list[Any], radius: float | None, height: float | None) -> RimInfo:
+        seen.append([float(f.metadata["turntable_deg_true"]) for f in frames])
+        return RimInfo((640.0, 360.0), 0.01, None, 0.001)
+
+    return replace(standin_tools(seed), rim=rim_fn)
+
+
+@pytest.mark.parametrize("turn", [0.0, 22.5])
+def test_rim_precheck_turns_the_disc_between_frames_when_asked(turn: float) -> None:
+    """With ``precheck.rim_turn_deg`` the rim frames are taken turn apart about where the
+    turntable stood (a textured disc's pattern moves, its rim does not); at 0 all are
+    taken still."""
+    base = sim_config()
+    pc = base.procedure.precheck.model_copy(update={"rim_turn_deg": turn})
+    cfg = sim_config(precheck=pc)
+    rig, _world = scene_rig(cfg, 4)
+    seen: list[list[float]] = []
+    res = run_check(rig, cfg, tools=_rim_recording_tools(4, seen))
+    assert len(seen) == 1 and len(seen[0]) == pc.rim_frames
+    angles = np.asarray(seen[0])
+    steps = np.diff(angles)
+    if turn:
+        assert np.allclose(steps, turn, atol=0.01), angles
+        assert abs(angles.mean()) <= 0.01  # centred on where it stood (0 after homing)
+    else:
+        assert np.ptp(angles) <= 0.01
+    assert res.eccentricity == 0.01 and res.eccentricity_u == 0.001
+
+
+def test_rim_turn_angles_stay_inside_the_soft_limits_or_refuse() -> None:
+    from alignd.errors import ConfigError
+    from alignd.procedures.sweep import rim_turn_angles
+
+    a = rim_turn_angles(150.0, 8, 22.5, -169.0, 169.0)  # shifted to fit below +169
+    assert a[-1] == pytest.approx(169.0) and np.allclose(np.diff(a), 22.5)
+    assert rim_turn_angles(0.0, 3, 10.0, -169.0, 169.0).tolist() == [-10.0, 0.0, 10.0]
+    with pytest.raises(ConfigError, match="rim_turn_deg 45 x 7 steps exceeds"):
+        rim_turn_angles(0.0, 8, 45.0, -100.0, 100.0)
+    # a run refuses it before anything moves
+    base = sim_config()
+    cfg = sim_config(precheck=base.procedure.precheck.model_copy(
+        update={"rim_turn_deg": 45.0, "rim_frames": 9}))
+    rig, _world = scene_rig(cfg, 4)
+    res = run_check(rig, cfg, tools=standin_tools(4))
+    assert res.exit_code == 2 and "rim_turn_deg" in res.reason
+    assert commanded(rig, "turntable") == []

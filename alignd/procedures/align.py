@@ -49,7 +49,9 @@ from alignd.procedures.sweep import (
     Measurement,
     SweepPlan,
     grab_fresh,
+    grab_rim_frames,
     measure,
+    rim_turn_angles,
     sweep_runout,
 )
 from alignd.procedures.tools import RimReading, TiltReading, Tools, default_tools
@@ -570,6 +572,8 @@ class _Run:
         if not (tt.min <= -self.p.sweep_deg and self.p.sweep_deg <= tt.max):
             raise ConfigError(f"procedure.sweep_deg {self.p.sweep_deg:g} exceeds the "
                               f"turntable soft limits [{tt.min:g}, {tt.max:g}]")
+        rim_turn_angles(0.0, self.p.precheck.rim_frames, self.p.precheck.rim_turn_deg,
+                        tt.min, tt.max)
         # check moves no translation stage: home only the turntable there
         roles = list(self.rig.axes) if self.mode == "align" else ["turntable"]
         self._emit("home", "homing where required")
@@ -631,17 +635,15 @@ class _Run:
 
     def _rim(self, top: Camera, n: int) -> RimReading:
         """The rim's eccentricity on the mean of ``n`` top frames, each exposed after the
-        one before (at small e one frame's noise dominates e's uncertainty). Tools without
+        one before (at small e one frame's noise dominates e's uncertainty), with the
+        turntable turned ``precheck.rim_turn_deg`` between them if set. Tools without
         a rim fit give ``tools.eccentricity`` of one frame, without uncertainty."""
         assert self.tools is not None
         if self.tools.rim is None:
             assert self.tools.eccentricity is not None
             return RimReading(float(self.tools.eccentricity(grab_fresh(top, top.clock.now()))),
                               None, 1)
-        frames: list[Frame] = []
-        for _ in range(n):
-            check_abort(self.abort)
-            frames.append(grab_fresh(top, top.clock.now()))
+        frames = grab_rim_frames(self.rig, top, n, self.p.precheck.rim_turn_deg, self.abort)
         info = self.tools.rim(frames, None, None)  # the ellipse alone: no zenith needed
         return RimReading(info.eccentricity, info.eccentricity_u, len(frames))
 

@@ -53,7 +53,7 @@ from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
 from alignd.procedures.runout import RunoutMap, fit_runout
-from alignd.procedures.sweep import apply_h, grab_fresh, rectifier, rot
+from alignd.procedures.sweep import apply_h, grab_fresh, grab_rim_frames, rectifier, rot
 from alignd.procedures.tools import Tools, default_tools
 
 log = logging.getLogger(__name__)
@@ -456,9 +456,9 @@ class _Commission:
             return
         try:
             # the frames the alignment's rim pre-check averages (at small e one frame's
-            # noise is most of e's uncertainty)
-            frames = [grab_fresh(cam, cam.clock.now())
-                      for _ in range(self.cfg.procedure.precheck.rim_frames)]
+            # noise is most of e's uncertainty), turned as it turns them
+            pc = self.cfg.procedure.precheck
+            frames = grab_rim_frames(self.rig, cam, pc.rim_frames, pc.rim_turn_deg, self.abort)
             info = self.tools.rim(frames, self.c.rim_radius_mm, self.c.top_camera_height_mm)
         except AligndError as exc:
             self._add(Finding("top.rim", "warn", f"rim not measurable: {exc}",

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
 from alignd.config import AligndConfig, HolderConfig
-from alignd.errors import SolveError, VisionError
+from alignd.errors import ConfigError, SolveError, VisionError
 from alignd.procedures.angles import AngleMap, check_sweep_angles
 from alignd.procedures.budget import Budget, Contribution, u_of
 from alignd.procedures.continuous import frame_angles, run_continuous_sweep
@@ -52,6 +52,44 @@ def grab_fresh(cam: Camera, after: float) -> Frame:
                           "was asked for (before the stage settled)",
                           device=cam.name, port=cam.source, command="grab")
     return frame
+
+
+def rim_turn_angles(start_deg: float, n: int, turn_deg: float, lim_min: float,
+                    lim_max: float) -> np.ndarray:
+    """The turntable angles of ``n`` rim frames ``turn_deg`` apart, centred on
+    ``start_deg`` and shifted inside the soft limits; ConfigError if they cannot fit."""
+    offsets = (np.arange(n) - (n - 1) / 2) * turn_deg
+    if offsets[-1] - offsets[0] > lim_max - lim_min:
+        raise ConfigError(f"procedure.precheck.rim_turn_deg {turn_deg:g} x {n - 1} steps "
+                          f"exceeds the turntable's soft limits [{lim_min:g}, {lim_max:g}]; "
+                          "take a smaller step or fewer rim_frames")
+    centre = min(max(start_deg, lim_min - offsets[0]), lim_max - offsets[-1])
+    return centre + offsets
+
+
+def grab_rim_frames(rig: Rig, cam: Camera, n: int, turn_deg: float = 0.0,
+                    abort: threading.Event | None = None) -> list[Frame]:
+    """``n`` top frames for the rim, each exposed after the one before. With ``turn_deg``
+    > 0 the turntable steps that far between them (:func:`rim_turn_angles`) and goes back
+    where it stood: the disc and its texture turn while the rim's ellipse stays, so the
+    texture's pull on e, which no number of still frames averages, averages out."""
+    if turn_deg <= 0 or n < 2:
+        frames = []
+        for _ in range(n):
+            check_abort(abort)
+            frames.append(grab_fresh(cam, cam.clock.now()))
+        return frames
+    tt = rig.axis("turntable")
+    lim = tt.config.soft_limits
+    start = tt.position()
+    frames = []
+    for angle in rim_turn_angles(start, n, turn_deg, lim.min, lim.max):
+        check_abort(abort)
+        tt.move_to(float(angle))
+        frames.append(grab_fresh(cam, cam.clock.now()))
+    check_abort(abort)
+    tt.move_to(start)
+    return frames
 
 
 def rot(deg: float | np.ndarray) -> np.ndarray:
