@@ -284,8 +284,10 @@ def _bezier(rng: np.random.Generator, w: int, h: int, n: int = 80) -> np.ndarray
 
 
 def _draw_cables(rng: np.random.Generator, img: np.ndarray, n: int,
-                 keep_out: list[np.ndarray], clearance: float) -> int:
-    """Draw up to n cables that stay ``clearance`` px outside every keep-out polygon."""
+                 keep_out: list[np.ndarray], clearance: float,
+                 seen: np.ndarray | None = None) -> int:
+    """Draw up to n cables that stay ``clearance`` px outside every keep-out polygon;
+    ``seen`` (optional) is multiplied by what each cable leaves visible beneath it."""
     h, w = img.shape
     drawn = 0
     for _ in range(n * 6):
@@ -303,6 +305,8 @@ def _draw_cables(rng: np.random.Generator, img: np.ndarray, n: int,
         mask = _aa_mask((h, w), draw)
         level = rng.choice([rng.uniform(10, 50), rng.uniform(180, 240)])
         img += (np.float32(level) - img) * mask
+        if seen is not None:
+            seen *= 1.0 - mask
         drawn += 1
     return drawn
 
@@ -727,11 +731,15 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
 
 # ---- rim ---------------------------------------------------------------------------------
 def random_rim_scene(rng: np.random.Generator, category: str | None = None,
-                     size_px: tuple[int, int] = (1280, 720), frames: int = 1
-                     ) -> RimSceneSample:
+                     size_px: tuple[int, int] = (1280, 720), frames: int = 1,
+                     turn_deg: float = 0.0) -> RimSceneSample:
     """One randomised frame of the turntable rim, in view, e 0.01-0.2 (see the docstring);
     ``frames`` > 1 adds further frames of the same view with independent noise and coding
-    (``RimSceneSample.frames``), as the pre-check grabs them."""
+    (``RimSceneSample.frames``), as the pre-check grabs them. ``turn_deg``: frame k shows
+    the turntable turned by k * turn_deg about its axis, so the disc's texture turns with
+    it (the rim's ellipse maps onto itself); the floor, the light, and (a simplification)
+    the holder and cables stay where they are. 0 (default): a still view, and the same
+    scenes as before for a given generator."""
     cat = str(category or RIM_CATEGORIES[int(rng.integers(len(RIM_CATEGORIES)))])
     w, h = size_px
     enc = Encoding(8, False, int(rng.integers(80, 96))) if cat == "jpeg" else Encoding()
@@ -750,8 +758,10 @@ def random_rim_scene(rng: np.random.Generator, category: str | None = None,
     ras = Raster(size_px, float(w), (w / 2, h / 2), 0.0)
     img = np.full((h, w), floor, np.float32) + _texture(rng, (h, w), rng.uniform(40, 200),
                                                         rng.uniform(0, 6))
-    disc_map = disc + _texture(rng, (h, w), rng.uniform(2, 30), rng.uniform(0.5, 3))
-    _paint(img, Conic(ellipse_conic(c, a, b, ang)), ras, disc_map)
+    disc_tex = _texture(rng, (h, w), rng.uniform(2, 30), rng.uniform(0.5, 3))
+    disc_cov = coverage(Conic(ellipse_conic(c, a, b, ang)), ras, (0, 0, w, h))
+    img += (disc + disc_tex - img) * disc_cov  # as _paint: the disc's exact coverage
+    seen = np.ones((h, w), np.float32)  # what the later layers pass of the disc's texture
     occluded = cat == "occluded" or (cat != "clear" and rng.random() < 0.4)
     params: dict[str, object] = {"dark_disc": dark, "occluded": occluded}
     if occluded:
@@ -763,9 +773,12 @@ def random_rim_scene(rng: np.random.Generator, category: str | None = None,
         mask = np.zeros((h, w), np.float32)
         cv2.fillConvexPoly(mask, np.round((hr + rng.uniform(-15, 15, 2)) * 16).astype(
             np.int32), 1.0, cv2.LINE_AA, 4)
-        img *= 1.0 - np.float32(rng.uniform(0.1, 0.4)) * cv2.GaussianBlur(mask, (0, 0), 5)
+        shade = 1.0 - np.float32(rng.uniform(0.1, 0.4)) * cv2.GaussianBlur(mask, (0, 0), 5)
+        img *= shade
+        seen *= shade
         _paint(img, Polygon(hr), ras, float(rng.uniform(5, 250)))
-        params["cables"] = _draw_cables(rng, img, int(rng.integers(1, 3)), [], 0.0)
+        _paint(seen, Polygon(hr), ras, 0.0)
+        params["cables"] = _draw_cables(rng, img, int(rng.integers(1, 3)), [], 0.0, seen)
     light, info = _light(rng, (h, w), gradient=0.3, vignetting=float(rng.uniform(0, 0.3)),
                          shadow=occluded and rng.random() < 0.5)
     params.update(info)
@@ -773,7 +786,28 @@ def random_rim_scene(rng: np.random.Generator, category: str | None = None,
     finish = {"blur": float(rng.uniform(0.4, 1.5)), "read_noise": float(rng.uniform(0.5, 2.5)),
               "electrons_per_dn": float(rng.uniform(20, 80))}
     out = _finish(img, rng, enc=enc, **finish)
+    if turn_deg:
+        params["turn_deg"] = float(turn_deg)
     # as for side views: a child generator per further frame keeps later scenes unchanged
-    more = tuple(_finish(img, child, enc=enc, **finish)
-                 for child in (rng.spawn(frames - 1) if frames > 1 else []))
+    more = tuple(
+        _finish(img + (_turned(disc_tex, c, (a, b), ang, k * turn_deg) - disc_tex)
+                * (disc_cov * seen * light) if turn_deg else img, child, enc=enc, **finish)
+        for k, child in enumerate(rng.spawn(frames - 1) if frames > 1 else [], start=1))
     return RimSceneSample(out, cat, c, (a, b), ang, e, enc, params, more)
+
+
+def _turned(tex: np.ndarray, center: tuple[float, float], axes: tuple[float, float],
+            angle_deg: float, turn_deg: float) -> np.ndarray:
+    """``tex`` on the disc turned by ``turn_deg`` about the turntable's axis, as the image
+    shows it: the affine view of the plane's rotation that maps the rim's ellipse (centre,
+    semi-axes, major axis direction) onto itself."""
+    t, r = math.radians(angle_deg), math.radians(turn_deg)
+    Rt = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    M = Rt @ np.diag(axes)  # unit circle in the plane -> the ellipse
+    Rr = np.array([[math.cos(r), -math.sin(r)], [math.sin(r), math.cos(r)]])
+    A = M @ Rr.T @ np.linalg.inv(M)  # output pixel -> where its texture was (inverse map)
+    ctr = np.asarray(center, float)
+    fwd = np.column_stack([A, ctr - A @ ctr]).astype(np.float64)
+    h, w = tex.shape
+    return cv2.warpAffine(tex, fwd, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REFLECT)
