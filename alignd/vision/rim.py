@@ -899,8 +899,12 @@ def fit_rim_frames(images: Sequence[np.ndarray], radius_mm: float | None = 150.0
     is an axes' difference of 0.01 px on a 200 px rim): the mean of N frames has 1/sqrt(N)
     of their noise. What the frames share (the disc's texture, JPEG coding of a still
     view) does not average out; ``eccentricity_std``, scaled by the points' scatter about
-    the fitted ellipse, still counts it. Frames are taken to grey levels first, so 12-bit
-    words and 8-bit frames mean the same."""
+    the fitted ellipse, still counts it. A fine disc texture moves each arc's edge by a few
+    hundredths of a pixel, which no per-arc model separates from the edge at a like noise
+    (docs/vision.md, Rim): frames taken with the turntable turned between them carry the
+    texture elsewhere each time while the rim's ellipse stays, so their mean averages it
+    too. Frames are taken to grey levels first, so 12-bit words and 8-bit frames mean the
+    same."""
     if not images:
         raise VisionError("rim frames: no frame given")
     grays = [as_gray(im, f"rim frame {i + 1}") for i, im in enumerate(images)]
