@@ -5,7 +5,7 @@ randomised corpus of scenes we did not draw for the vision (drivers.sim.scenes).
     python bench/vision.py --quick    # CI-sized run
     python bench/vision.py --only top # the top camera's rows only (holder corners, speed)
     python bench/vision.py --only rim --rim-scenes 1000   # the rim alone, more scenes
-    python bench/vision.py --only rim --rim-turn-deg 45   # rim frames at 8 turntable angles
+    python bench/vision.py --only rim --rim-turn-deg 22.5 # rim frames at 8 turntable angles
 
 Part 1, our renderer (the rig's simulated cameras): read noise 2 DN, 8-bit, defocus blur
 0.6 px, a lighting gradient of 20 % across the width and 10 % across the height, holder
