@@ -338,3 +338,24 @@ def test_a_disc_texture_the_frames_share_stays_in_e_unless_the_turntable_turns()
     assert abs(g.eccentricity - e) < 0.001
     assert abs(g.eccentricity - e) <= 3 * g.eccentricity_std
     assert g.eccentricity_std < f.eccentricity_std
+
+
+def test_the_robust_mean_of_frames_leaves_out_what_covers_a_pixel_in_few_frames() -> None:
+    """A patch over some pixels in 2 of 8 frames (a holder turning with the turntable) is
+    left out of them; frames that differ by noise alone (shot noise rising with the level)
+    give exactly their plain mean."""
+    from alignd.vision.rim import _robust_mean
+    rng = np.random.default_rng(6)
+    yy, xx = np.mgrid[0:120, 0:160]
+    clean = 40.0 + 180.0 * (xx / 160.0)  # dark to bright: the noise grows with the level
+    frames = [(clean + rng.normal(0.0, 1.0, clean.shape) * np.sqrt(1.0 + clean / 20.0)
+               ).astype(np.float32) for _ in range(8)]
+    plain = np.stack(frames).mean(axis=0)
+    assert np.array_equal(_robust_mean(frames), plain)
+    covered = [f.copy() for f in frames]
+    covered[0][20:50, 30:70] = 10.0  # a dark holder at one turntable angle ...
+    covered[1][30:60, 50:90] = 10.0  # ... and at the next
+    r = _robust_mean(covered)
+    rest = np.stack(frames[2:]).mean(axis=0)
+    assert np.abs(r - rest)[30:50, 50:70].max() < 1e-4  # covered twice: the other 6 frames
+    assert np.abs(r - plain)[:, 100:].max() == 0.0  # never covered: untouched
