@@ -359,3 +359,16 @@ def test_the_robust_mean_of_frames_leaves_out_what_covers_a_pixel_in_few_frames(
     rest = np.stack(frames[2:]).mean(axis=0)
     assert np.abs(r - rest)[30:50, 50:70].max() < 1e-4  # covered twice: the other 6 frames
     assert np.abs(r - plain)[:, 100:].max() == 0.0  # never covered: untouched
+
+
+def test_frames_with_a_holder_turning_over_the_rim_are_fitted() -> None:
+    """Eight frames 22.5 deg apart of a rim a holder overlaps (it stands on the turntable
+    and turns with it): their plain mean smears the holder over the rim and no rim is
+    found in it; without what covers a pixel in few frames the rim is measured."""
+    from drivers.sim.scenes import random_rim_scene
+    sc = random_rim_scene(np.random.default_rng(37), "occluded", frames=8, turn_deg=22.5)
+    assert sc.params["occluded"]
+    with pytest.raises(VisionError, match="rim"):
+        fit_rim(np.stack(sc.frames).mean(axis=0, dtype=np.float32), None, None)
+    f = fit_rim_frames(sc.frames, None, None)
+    assert abs(f.eccentricity - sc.eccentricity) <= min(0.003, 3 * f.eccentricity_std)
