@@ -5,6 +5,7 @@ randomised corpus of scenes we did not draw for the vision (drivers.sim.scenes).
     python bench/vision.py --quick    # CI-sized run
     python bench/vision.py --only top # the top camera's rows only (holder corners, speed)
     python bench/vision.py --only rim --rim-scenes 1000   # the rim alone, more scenes
+    python bench/vision.py --only rim --rim-turn-deg 22.5 # rim frames at 8 turntable angles
 
 Part 1, our renderer (the rig's simulated cameras): read noise 2 DN, 8-bit, defocus blur
 0.6 px, a lighting gradient of 20 % across the width and 10 % across the height, holder
@@ -440,11 +441,14 @@ def _rim_table(per: dict[str, dict[str, list[float]]], tag: str
                   "max_all": max(map(abs, errs_all), default=math.nan)}
 
 
-def corpus_rim(n: int, seed: int, frames: int = RIM_FRAMES
+def corpus_rim(n: int, seed: int, frames: int = RIM_FRAMES, turn_deg: float = 0.0
                ) -> tuple[list[Row], dict[str, float], dict[str, float]]:
     """n randomised rim scenes, the categories in turn, each as ``frames`` frames with
     their own noise (and coding): one frame (:func:`fit_rim` on the first) and the
     pre-check (:func:`fit_rim_frames` on all, ``procedure.precheck.rim_frames``).
+    ``turn_deg``: frame k shows the turntable turned by k * turn_deg (the disc's texture
+    turns with it; the first frame is the still view's), 0 a still view as the pre-check
+    takes it now.
     "found": an ellipse returned; "uncertain": found, but its e's standard uncertainty
     exceeds RIM_E_STD, so it cannot support the 0.003 bound (listed with its error); the
     error columns are over the rest, "max, all" over every fit returned; "pull" is the
@@ -454,7 +458,7 @@ def corpus_rim(n: int, seed: int, frames: int = RIM_FRAMES
     pre: dict[str, dict[str, list[float]]] = {}
     for i in range(n):
         cat = RIM_CATEGORIES[i % len(RIM_CATEGORIES)]
-        sc = random_rim_scene(rng, cat, frames=frames)
+        sc = random_rim_scene(rng, cat, frames=frames, turn_deg=turn_deg)
         for per, tag, images in ((one, "1", sc.frames[:1]), (pre, f"x{frames}", sc.frames)):
             d = per.setdefault(cat, {"n": [], "found": [], "uncertain": [], "err": [],
                                      "err_all": [], "pull": []})
@@ -571,10 +575,13 @@ def side_targets(ss: dict[str, float]) -> list[Target]:
     ]
 
 
-def print_rim(c_rim: int, seed: int) -> tuple[dict[str, float], dict[str, float]]:
-    r_rows, s1, s_pre = corpus_rim(c_rim, seed)
+def print_rim(c_rim: int, seed: int, turn_deg: float = 0.0
+              ) -> tuple[dict[str, float], dict[str, float]]:
+    r_rows, s1, s_pre = corpus_rim(c_rim, seed, turn_deg=turn_deg)
+    turned = f", the turntable turned {turn_deg:g} deg between frames" if turn_deg else ""
     print(f"\nrandomised rim scenes (eccentricity 0.01-0.2; {c_rim} scenes; '1': one frame, "
-          f"'x{RIM_FRAMES}': the pre-check, the mean of {RIM_FRAMES} frames of the view; "
+          f"'x{RIM_FRAMES}': the pre-check, the mean of {RIM_FRAMES} frames of the view"
+          f"{turned}; "
           f"errors over the fits whose e is certain to {RIM_E_STD:g}, 'max, all' over every "
           "fit)")
     print_table(("category", "n", "found %", "uncertain", "e error RMS", "max", "max, all",
@@ -646,6 +653,10 @@ def main(argv: list[str] | None = None) -> int:
                          "or rim (eccentricity)")
     ap.add_argument("--rim-scenes", type=int, default=None,
                     help="randomised rim scenes (default 200, 8 with --quick)")
+    ap.add_argument("--rim-turn-deg", type=float, default=0.0,
+                    help="turn the turntable by this much between the pre-check's rim "
+                         "frames (the disc's texture turns, its rim does not; default 0: "
+                         "a still view, as the pre-check takes it)")
     args = ap.parse_args(argv)
     want = {args.only} if args.only else {"top", "side", "rim"}
     n_top = 4 if args.quick else 40
@@ -674,7 +685,7 @@ def main(argv: list[str] | None = None) -> int:
     if "side" in want:
         targets += side_targets(print_side(c_side, args.seed + 200))
     if "rim" in want:
-        targets += rim_targets(print_rim(c_rim, args.seed + 300))
+        targets += rim_targets(print_rim(c_rim, args.seed + 300, args.rim_turn_deg))
     print_targets(targets)
     return 0
 

@@ -4,6 +4,8 @@ the rim half hidden or darker than the floor."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -289,3 +291,30 @@ def test_analyze_side_regions_and_holder_size(tmp_path, capsys) -> None:
                  "--pixel-size-um", "150"]) == 0  # 180 x 100 px: the small box
     o = json.loads(capsys.readouterr().out.splitlines()[0])
     assert o["ok"] and o["size_px"][0] == pytest.approx(180.0, abs=0.5)
+
+
+def test_rim_scene_turned_frames_turn_the_disc_and_the_holder() -> None:
+    """``turn_deg``: the first frame and the truth are the still view's; later frames
+    differ from the still view's (same noise) where the disc's texture turned, and, off the
+    disc, only where a holder standing on the turntable turned; without it the scenes are
+    those drawn before the option existed."""
+    for cat, holder in (("clear", False), ("occluded", True)):
+        still = random_rim_scene(np.random.default_rng(3), cat, frames=3)
+        turned = random_rim_scene(np.random.default_rng(3), cat, frames=3, turn_deg=30.0)
+        assert still.params["occluded"] is holder
+        assert np.array_equal(still.image, turned.image)
+        assert (turned.center_px, turned.axes_px, turned.angle_deg) == (
+            still.center_px, still.axes_px, still.angle_deg)
+        cx, cy = still.center_px
+        a, b = still.axes_px
+        t = math.radians(still.angle_deg)
+        yy, xx = np.mgrid[0:still.image.shape[0], 0:still.image.shape[1]]
+        u = (xx - cx) * math.cos(t) + (yy - cy) * math.sin(t)
+        v = -(xx - cx) * math.sin(t) + (yy - cy) * math.cos(t)
+        r = np.sqrt((u / a) ** 2 + (v / b) ** 2)
+        for s, m in zip(still.more_frames, turned.more_frames, strict=True):
+            diff = s.astype(int) != m.astype(int)
+            assert diff[r < 0.9].mean() > 0.3  # the disc's texture has moved
+            off = diff[r > 1.0 + 4.0 / b]  # the floor, beyond the blur
+            # a holder straddles the rim: off the disc it (and its shadow) moved too
+            assert (0.002 < off.mean() < 0.1) if holder else not off.any()

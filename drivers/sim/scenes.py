@@ -284,8 +284,10 @@ def _bezier(rng: np.random.Generator, w: int, h: int, n: int = 80) -> np.ndarray
 
 
 def _draw_cables(rng: np.random.Generator, img: np.ndarray, n: int,
-                 keep_out: list[np.ndarray], clearance: float) -> int:
-    """Draw up to n cables that stay ``clearance`` px outside every keep-out polygon."""
+                 keep_out: list[np.ndarray], clearance: float,
+                 layers: list[tuple[np.ndarray, float]] | None = None) -> int:
+    """Draw up to n cables that stay ``clearance`` px outside every keep-out polygon;
+    ``layers`` (optional) receives each cable's coverage mask and level, to draw it again."""
     h, w = img.shape
     drawn = 0
     for _ in range(n * 6):
@@ -303,6 +305,8 @@ def _draw_cables(rng: np.random.Generator, img: np.ndarray, n: int,
         mask = _aa_mask((h, w), draw)
         level = rng.choice([rng.uniform(10, 50), rng.uniform(180, 240)])
         img += (np.float32(level) - img) * mask
+        if layers is not None:
+            layers.append((mask, float(level)))
         drawn += 1
     return drawn
 
@@ -727,11 +731,15 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
 
 # ---- rim ---------------------------------------------------------------------------------
 def random_rim_scene(rng: np.random.Generator, category: str | None = None,
-                     size_px: tuple[int, int] = (1280, 720), frames: int = 1
-                     ) -> RimSceneSample:
+                     size_px: tuple[int, int] = (1280, 720), frames: int = 1,
+                     turn_deg: float = 0.0) -> RimSceneSample:
     """One randomised frame of the turntable rim, in view, e 0.01-0.2 (see the docstring);
     ``frames`` > 1 adds further frames of the same view with independent noise and coding
-    (``RimSceneSample.frames``), as the pre-check grabs them."""
+    (``RimSceneSample.frames``), as the pre-check grabs them. ``turn_deg``: frame k shows
+    the turntable turned by k * turn_deg about its axis: the disc's texture and the holder
+    (with its shadow) turn with it, drawn in the disc's plane (the rim's ellipse maps onto
+    itself); the floor, the light and the cables stay. 0 (default): a still view, and the
+    same scenes as before the option for a given generator."""
     cat = str(category or RIM_CATEGORIES[int(rng.integers(len(RIM_CATEGORIES)))])
     w, h = size_px
     enc = Encoding(8, False, int(rng.integers(80, 96))) if cat == "jpeg" else Encoding()
@@ -748,24 +756,46 @@ def random_rim_scene(rng: np.random.Generator, category: str | None = None,
         if 10 <= disc <= 240:
             break
     ras = Raster(size_px, float(w), (w / 2, h / 2), 0.0)
-    img = np.full((h, w), floor, np.float32) + _texture(rng, (h, w), rng.uniform(40, 200),
-                                                        rng.uniform(0, 6))
-    disc_map = disc + _texture(rng, (h, w), rng.uniform(2, 30), rng.uniform(0.5, 3))
-    _paint(img, Conic(ellipse_conic(c, a, b, ang)), ras, disc_map)
+    ground = np.full((h, w), floor, np.float32) + _texture(rng, (h, w), rng.uniform(40, 200),
+                                                           rng.uniform(0, 6))
+    disc_tex = _texture(rng, (h, w), rng.uniform(2, 30), rng.uniform(0.5, 3))
+    disc_cov = coverage(Conic(ellipse_conic(c, a, b, ang)), ras, (0, 0, w, h))
     occluded = cat == "occluded" or (cat != "clear" and rng.random() < 0.4)
     params: dict[str, object] = {"dark_disc": dark, "occluded": occluded}
+    holder: tuple[np.ndarray, np.ndarray, float, float] | None = None
+    cables: list[tuple[np.ndarray, float]] = []
+
+    def compose(turn: float) -> np.ndarray:
+        """The view before light and noise with the turntable turned by ``turn``."""
+        img = ground.copy()
+        tex = disc_tex if turn == 0.0 else _turned(disc_tex, c, (a, b), ang, turn)
+        img += (disc + tex - img) * disc_cov  # as _paint: the disc's exact coverage
+        if holder is not None:
+            hr, off, depth, level = holder
+            if turn != 0.0:
+                hr = _turn_points(hr, c, (a, b), ang, turn)
+            mask = np.zeros((h, w), np.float32)
+            cv2.fillConvexPoly(mask, np.round((hr + off) * 16).astype(np.int32), 1.0,
+                               cv2.LINE_AA, 4)
+            img *= 1.0 - np.float32(depth) * cv2.GaussianBlur(mask, (0, 0), 5)
+            _paint(img, Polygon(hr), ras, level)
+        for m, lv in cables:
+            img += (np.float32(lv) - img) * m
+        return img
+
     if occluded:
-        # a holder overlapping the rim, cables across it, a shadow
+        # a holder overlapping the rim (it stands on the turntable), its shadow, cables
         t = float(rng.uniform(0, 2 * math.pi))
         L = float(rng.uniform(60, 160))
         p = np.array(c) + np.array([a * math.cos(t), b * math.sin(t)]) * 0.95
         hr = _rect(p, L, L / rng.uniform(1, 2.5), float(rng.uniform(-90, 90)))
-        mask = np.zeros((h, w), np.float32)
-        cv2.fillConvexPoly(mask, np.round((hr + rng.uniform(-15, 15, 2)) * 16).astype(
-            np.int32), 1.0, cv2.LINE_AA, 4)
-        img *= 1.0 - np.float32(rng.uniform(0.1, 0.4)) * cv2.GaussianBlur(mask, (0, 0), 5)
-        _paint(img, Polygon(hr), ras, float(rng.uniform(5, 250)))
-        params["cables"] = _draw_cables(rng, img, int(rng.integers(1, 3)), [], 0.0)
+        off = rng.uniform(-15, 15, 2)
+        depth = float(rng.uniform(0.1, 0.4))
+        holder = (hr, off, depth, float(rng.uniform(5, 250)))
+        img = compose(0.0)
+        params["cables"] = _draw_cables(rng, img, int(rng.integers(1, 3)), [], 0.0, cables)
+    else:
+        img = compose(0.0)
     light, info = _light(rng, (h, w), gradient=0.3, vignetting=float(rng.uniform(0, 0.3)),
                          shadow=occluded and rng.random() < 0.5)
     params.update(info)
@@ -773,7 +803,43 @@ def random_rim_scene(rng: np.random.Generator, category: str | None = None,
     finish = {"blur": float(rng.uniform(0.4, 1.5)), "read_noise": float(rng.uniform(0.5, 2.5)),
               "electrons_per_dn": float(rng.uniform(20, 80))}
     out = _finish(img, rng, enc=enc, **finish)
+    if turn_deg:
+        params["turn_deg"] = float(turn_deg)
     # as for side views: a child generator per further frame keeps later scenes unchanged
-    more = tuple(_finish(img, child, enc=enc, **finish)
-                 for child in (rng.spawn(frames - 1) if frames > 1 else []))
+    more = tuple(_finish(compose(k * turn_deg) * light if turn_deg else img, child, enc=enc,
+                         **finish)
+                 for k, child in enumerate(rng.spawn(frames - 1) if frames > 1 else [],
+                                           start=1))
     return RimSceneSample(out, cat, c, (a, b), ang, e, enc, params, more)
+
+
+def _plane_turn(center: tuple[float, float], axes: tuple[float, float], angle_deg: float,
+                turn_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(A, t): x -> A x + t is the turntable's turn by ``turn_deg`` as the image shows it,
+    the affine view of the plane's rotation that maps the rim's ellipse (centre, semi-axes,
+    major axis direction) onto itself."""
+    t, r = math.radians(angle_deg), math.radians(turn_deg)
+    Rt = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    M = Rt @ np.diag(axes)  # unit circle in the plane -> the ellipse
+    Rr = np.array([[math.cos(r), -math.sin(r)], [math.sin(r), math.cos(r)]])
+    A = M @ Rr @ np.linalg.inv(M)
+    ctr = np.asarray(center, float)
+    return A, ctr - A @ ctr
+
+
+def _turn_points(pts: np.ndarray, center: tuple[float, float], axes: tuple[float, float],
+                 angle_deg: float, turn_deg: float) -> np.ndarray:
+    """Image points on the turntable after it turned by ``turn_deg``."""
+    A, t = _plane_turn(center, axes, angle_deg, turn_deg)
+    return np.asarray(pts, float) @ A.T + t
+
+
+def _turned(tex: np.ndarray, center: tuple[float, float], axes: tuple[float, float],
+            angle_deg: float, turn_deg: float) -> np.ndarray:
+    """``tex`` on the disc turned by ``turn_deg`` about the turntable's axis, as the image
+    shows it (:func:`_plane_turn`)."""
+    A, t = _plane_turn(center, axes, angle_deg, -turn_deg)  # output pixel -> its source
+    h, w = tex.shape
+    return cv2.warpAffine(tex, np.column_stack([A, t]), (w, h),
+                          flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REFLECT)
