@@ -589,10 +589,12 @@ def print_rim(c_rim: int, seed: int, turn_deg: float = 0.0
     return s1, s_pre
 
 
-def rim_targets(rs: tuple[dict[str, float], dict[str, float]]) -> list[Target]:
+def rim_targets(rs: tuple[dict[str, float], dict[str, float]], turn_deg: float = 0.0
+                ) -> list[Target]:
     one, pre = rs
     out: list[Target] = []
-    for tag, r in (("one frame", one), (f"pre-check, {RIM_FRAMES} frames", pre)):
+    turned = f" turned {turn_deg:g} deg apart" if turn_deg else ""
+    for tag, r in (("one frame", one), (f"pre-check, {RIM_FRAMES} frames{turned}", pre)):
         out += [
             (f"rim {tag}: found (%)", f"{100 * r['found']:.1f}", "(info)", None),
             (f"rim {tag}: found and certain to 0.001 (%)", f"{100 * r['certain']:.1f}",
@@ -655,8 +657,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="randomised rim scenes (default 200, 8 with --quick)")
     ap.add_argument("--rim-turn-deg", type=float, default=0.0,
                     help="turn the turntable by this much between the pre-check's rim "
-                         "frames (the disc's texture turns, its rim does not; default 0: "
-                         "a still view, as the pre-check takes it)")
+                         "frames (the disc's texture turns, its rim does not), as "
+                         "procedure.precheck.rim_turn_deg does; default 0: a still view, "
+                         "the pre-check's default")
     args = ap.parse_args(argv)
     want = {args.only} if args.only else {"top", "side", "rim"}
     n_top = 4 if args.quick else 40
@@ -685,7 +688,8 @@ def main(argv: list[str] | None = None) -> int:
     if "side" in want:
         targets += side_targets(print_side(c_side, args.seed + 200))
     if "rim" in want:
-        targets += rim_targets(print_rim(c_rim, args.seed + 300, args.rim_turn_deg))
+        targets += rim_targets(print_rim(c_rim, args.seed + 300, args.rim_turn_deg),
+                               args.rim_turn_deg)
     print_targets(targets)
     return 0
 
