@@ -95,8 +95,21 @@ class TopSceneSample:
                 self.holder_size_mm[1] * 1000.0 / self.pixel_size_um)
 
 
+class _Views:
+    """A view drawn as several frames: ``image`` and ``more_frames`` (each with its own
+    noise and coding), as a camera streams them."""
+
+    image: np.ndarray
+    more_frames: tuple[np.ndarray, ...]
+
+    @property
+    def frames(self) -> tuple[np.ndarray, ...]:
+        """Every frame of the view: ``image`` first."""
+        return (self.image, *self.more_frames)
+
+
 @dataclass(frozen=True)
-class SideSceneSample:
+class SideSceneSample(_Views):
     """A side-camera frame and its truth (angles in deg from the image vertical, + when the
     line's top leans toward +x; tilt = sample - pole)."""
 
@@ -115,17 +128,12 @@ class SideSceneSample:
     more_frames: tuple[np.ndarray, ...] = ()  # further frames of the view, own noise
 
     @property
-    def frames(self) -> tuple[np.ndarray, ...]:
-        """Every frame of the view: ``image`` first."""
-        return (self.image, *self.more_frames)
-
-    @property
     def tilt_deg(self) -> float:
         return self.sample_angle_deg - self.pole_angle_deg
 
 
 @dataclass(frozen=True)
-class RimSceneSample:
+class RimSceneSample(_Views):
     """A frame with the turntable rim and its truth (the outer ellipse)."""
 
     image: np.ndarray
@@ -137,11 +145,6 @@ class RimSceneSample:
     encoding: Encoding
     params: dict[str, object] = field(default_factory=dict)
     more_frames: tuple[np.ndarray, ...] = ()  # further frames of the view, own noise
-
-    @property
-    def frames(self) -> tuple[np.ndarray, ...]:
-        """Every frame of the view: ``image`` first."""
-        return (self.image, *self.more_frames)
 
 
 # ---- drawing helpers -------------------------------------------------------------------
