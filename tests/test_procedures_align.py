@@ -476,8 +476,11 @@ def test_rim_precheck_turns_the_disc_between_frames_when_asked(turn: float) -> N
     cfg = sim_config(precheck=pc)
     rig, _world = scene_rig(cfg, 4)
     seen: list[list[float]] = []
-    res = run_check(rig, cfg, tools=_rim_recording_tools(4, seen))
+    said: list[str] = []
+    res = run_check(rig, cfg, tools=_rim_recording_tools(4, seen),
+                    progress=lambda ev: said.append(ev.message))
     assert len(seen) == 1 and len(seen[0]) == pc.rim_frames
+    assert any("turned 22.5 deg between them" in m for m in said) == bool(turn)
     angles = np.asarray(seen[0])
     steps = np.diff(angles)
     if turn:

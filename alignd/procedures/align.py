@@ -599,14 +599,18 @@ class _Run:
                               f"({det.reason or 'no detection'}); nothing moved")
         if self.tools.eccentricity is not None or self.tools.rim is not None:
             check_abort(self.abort)
-            self._emit("precheck", "top-camera eccentricity")
+            turn = pc.rim_turn_deg if pc.rim_frames > 1 else 0.0
+            self._emit("precheck", "top-camera eccentricity" + (
+                f" ({pc.rim_frames} frames, the turntable turned {turn:g} deg between them)"
+                if turn else ""))
             try:
                 rim = self._rim(top, pc.rim_frames)
                 e = self.st.eccentricity = rim.eccentricity
                 self.st.eccentricity_u = rim.u
                 u = "" if rim.u is None else f" +- {rim.u:.4f}"
+                turned = f", turned {turn:g} deg apart" if turn else ""
                 self.recorder.event(f"pre-check: top-camera rim eccentricity {e:.4f}{u} "
-                                    f"(mean of {rim.frames} top frame(s), u k = 1)")
+                                    f"(mean of {rim.frames} top frame(s){turned}, u k = 1)")
                 if e > pc.max_eccentricity:
                     problems.append(("fault", f"top-camera eccentricity {e:.3f} exceeds "
                                      f"{pc.max_eccentricity:g} (camera not on the axis)"))

@@ -465,13 +465,15 @@ class _Commission:
                               name="not measured"))
             return
         self.rim_centre = np.asarray(info.center_px, float)
+        turned = (f", turned {pc.rim_turn_deg:g} deg apart"
+                  if pc.rim_turn_deg and len(frames) > 1 else "")
         e_max = self.cfg.procedure.precheck.max_eccentricity
         verdict: FindingVerdict = "pass" if info.eccentricity <= e_max else "fail"
         zen = "" if info.zenith_deg is None else f", camera zenith {info.zenith_deg:.2f} deg"
         u = "" if info.eccentricity_u is None else f" +- {info.eccentricity_u:.4f}"
         self._add(Finding("top.rim", verdict,
                           f"rim eccentricity {info.eccentricity:.4f}{u} (limit {e_max:g}; mean "
-                          f"of {len(frames)} frames){zen}",
+                          f"of {len(frames)} frames{turned}){zen}",
                           value={"eccentricity": info.eccentricity,
                                  "zenith_deg": info.zenith_deg,
                                  "center_px": info.center_px},
