@@ -117,16 +117,15 @@ def solve_rows(B: np.ndarray, Y: np.ndarray) -> np.ndarray:
 
 
 def _gauss_newton(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray,
-                  spread: Spread, iterations: int = 12, slopes: np.ndarray | None = None
+                  spread: Spread, iterations: int = 12
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Variable projection (Kaufman's Jacobian) for (a, b, s); returns p, residuals (N, W),
-    the per-row coefficients (N, 4) and J^T J. ``slopes``: the rows' (beta, delta) held
-    fixed (N, 2) instead of fitted (see :func:`_jacobian_at`)."""
+    the per-row coefficients (N, 4) and J^T J."""
     JtJ = np.eye(3)
     r = np.zeros_like(P)
     c = np.zeros((P.shape[0], 4))
     for it in range(iterations + 1):  # the last pass only evaluates J at the solution
-        p, r, c, D = _jacobian_at(P, cols, yc, p, spread, slopes)
+        p, r, c, D = _jacobian_at(P, cols, yc, p, spread)
         J = D.reshape(-1, 3)  # r = P - model: dr/dp = -D, the step solves D dp = r
         JtJ = J.T @ J
         if it == iterations:
@@ -143,8 +142,8 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
                       rows: np.ndarray, *, half_width: int = 7, blur0: float = 1.0,
                       x_limits: tuple[int, int] | None = None, min_rows: int = 20,
                       spread: Spread = "optics",
-                      clip_levels: tuple[float, float] | None = (0.0, 255.0),
-                      slope_rows: int = 0) -> ProfileFit | None:
+                      clip_levels: tuple[float, float] | None = (0.0, 255.0)
+                      ) -> ProfileFit | None:
     """Fit the edge near x = a0 + b0 (y - y_mid) over ``rows`` (the start to about a pixel).
 
     Windows of 2 * half_width + 1 px, fixed by the start line, stay inside ``x_limits``
@@ -158,13 +157,6 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     The standard error treats each band of 8 image rows as one unit (a cluster-robust
     sandwich): JPEG/MJPEG codes 8 x 8 blocks, so the rows of a block share their coding
     error and are not independent samples of the edge.
-
-    ``slope_rows`` > 0: the illumination slopes on either side (beta, delta) are first
-    fitted per row, then averaged over +-``slope_rows`` rows and held there while the line
-    is fitted again with only each row's levels free. Free per row they cost most of a
-    row's position information (the level-plus-slope pair mimics a shifted blurred step:
-    at blur 1.4 px the position's variance is 4 times that with the slopes known); light
-    varies slowly along an edge, so shared ones cost little.
     """
     h, w = gray.shape
     lo, hi = x_limits if x_limits is not None else (0, w)
@@ -212,18 +204,9 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
         use = new
     else:
         x, _r, _c, _JtJ = _gauss_newton(P[use], cols[use], yc[use], x, spread)
-    slopes = None
-    if slope_rows > 0:
-        u_all = cols - (x[0] + x[1] * yc)[:, None]
-        coef = solve_rows(step_basis(u_all, x[2], spread)[3], P[..., None])[..., 0]
-        slopes = np.stack([_smoothed(coef[:, k], rows, use, slope_rows) for k in (1, 3)],
-                          axis=1)
-        x, _r, _c, _JtJ = _gauss_newton(P[use], cols[use], yc[use], x, spread,
-                                        slopes=slopes[use])
-    x, r, _c, J = _jacobian_at(P[use], cols[use], yc[use], x, spread,
-                               None if slopes is None else slopes[use])
+    x, r, _c, J = _jacobian_at(P[use], cols[use], yc[use], x, spread)
     n_use = int(use.sum())
-    dof = max(n_use * m - 3 - (4 if slopes is None else 2) * n_use, 1)
+    dof = max(n_use * m - 3 - 4 * n_use, 1)
     s2 = float(np.sum(r ** 2)) / dof
     cov = _cluster_cov(J, r, rows[use] // 8, n_use * m, dof)[:2, :2]
     bands, infl = _band_influence(J, r, rows[use] // BAND_ROWS, n_use * m, dof)
@@ -248,49 +231,17 @@ def _band_influence(D: np.ndarray, r: np.ndarray, cluster: np.ndarray, n_obs: in
 
 
 def _jacobian_at(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray,
-                 spread: Spread, slopes: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 spread: Spread) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Residuals (N, W), the per-row coefficients (N, 4) and the projected Jacobian
-    (N, W, 3) of the model B c with respect to a, b, s (c held) at ``p`` (no step taken).
-    With ``slopes`` (N, 2) the rows' beta and delta are those, only alpha and gamma are
-    solved for (and projected out)."""
+    (N, W, 3) of the model B c with respect to a, b, s (c held) at ``p`` (no step taken)."""
     u = cols - (p[0] + p[1] * yc)[:, None]
     F, dFu, dFs, B = step_basis(u, p[2], spread)
-    if slopes is None:
-        c = solve_rows(B, P[..., None])[..., 0]
-        Bp = B
-    else:
-        Bp = B[..., [0, 2]]
-        known = slopes[:, 0:1] * u + slopes[:, 1:2] * u * F
-        c2 = _solve2(Bp, (P - known)[..., None])[..., 0]
-        c = np.stack([c2[:, 0], slopes[:, 0], c2[:, 1], slopes[:, 1]], axis=1)
+    c = solve_rows(B, P[..., None])[..., 0]
     r = P - (B @ c[..., None])[..., 0]
     da = -(c[:, 1:2] + c[:, 2:3] * dFu + c[:, 3:4] * (F + u * dFu))
     D = np.stack([da, da * yc[:, None], (c[:, 2:3] + c[:, 3:4] * u) * dFs], axis=2)
-    D = D - Bp @ (solve_rows(B, D) if slopes is None else _solve2(Bp, D))
+    D = D - B @ solve_rows(B, D)
     return p, r, c, D
-
-
-def _solve2(B: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Per-row least squares on a basis of any width (as :func:`solve_rows`)."""
-    Bt = B.transpose(0, 2, 1)
-    return np.linalg.solve(Bt @ B + 1e-9 * np.eye(B.shape[2]), Bt @ Y)
-
-
-def _smoothed(v: np.ndarray, rows: np.ndarray, use: np.ndarray, half: int) -> np.ndarray:
-    """``v`` (one value per row) averaged over the used rows within +-``half`` image rows
-    of each row (every row gets a value; a row without used neighbours keeps its own)."""
-    r0 = int(rows.min())
-    n = int(rows.max()) - r0 + 1
-    s = np.zeros(n + 1)
-    k = np.zeros(n + 1)
-    np.add.at(s, rows[use] - r0 + 1, v[use])
-    np.add.at(k, rows[use] - r0 + 1, 1.0)
-    s, k = np.cumsum(s), np.cumsum(k)
-    lo = np.clip(rows - r0 - half, 0, n)
-    hi = np.clip(rows - r0 + half + 1, 0, n)
-    cnt = k[hi] - k[lo]
-    return np.where(cnt > 0, (s[hi] - s[lo]) / np.maximum(cnt, 1.0), v)
 
 
 def _cluster_cov(D: np.ndarray, r: np.ndarray, cluster: np.ndarray, n_obs: int,

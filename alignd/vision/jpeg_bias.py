@@ -87,12 +87,10 @@ class EdgeBias:
 def edge_angle_bias(frames: list[np.ndarray], quality: int, a: float, b: float, y_mid: float,
                     rows: np.ndarray, blur_px: float, spread: Spread, half_width: int,
                     x_limits: tuple[int, int], rng: np.random.Generator,
-                    draws: int = 8, slope_rows: int = 0) -> EdgeBias | None:
+                    draws: int = 8) -> EdgeBias | None:
     """The coding's bias on the angle of the edge x = a + b (y - y_mid) over ``rows`` of
     ``frames`` (grey, full-frame coordinates, the block grid at the origin), coded at
-    libjpeg ``quality``. ``slope_rows``: as the edge was fitted
-    (:func:`alignd.vision.edge_profile.fit_vertical_edge`). None when the edge cannot be
-    drawn or fitted again."""
+    libjpeg ``quality``. None when the edge cannot be drawn or fitted again."""
     h, w = np.asarray(frames[0]).shape
     m = 2 * half_width + 1
     rows = np.asarray(rows, int)
@@ -148,7 +146,7 @@ def edge_angle_bias(frames: list[np.ndarray], quality: int, a: float, b: float, 
     def fitted(img: np.ndarray, blur: float) -> ProfileFit | None:
         return fit_vertical_edge(img.astype(np.float32), a - x0, b, y_mid - y0, rows,
                                  half_width=half_width, blur0=blur, x_limits=lim,
-                                 spread=spread, slope_rows=slope_rows)
+                                 spread=spread)
 
     # the coding blurs a faint sharp edge (its fitted blur on the frames was 0.54-0.58 px
     # where the lens gave 0.47): drawn at the blur fitted, the simulated edge is too soft

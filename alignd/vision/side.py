@@ -230,12 +230,6 @@ def _roi_edges(image: np.ndarray, roi: tuple[int, int, int, int], what: str,
 
 
 SPREADS: tuple[Spread, ...] = ("optics", "pixel grid")
-# the profile fits' illumination slopes are shared over +-8 rows (see
-# :func:`alignd.vision.edge_profile.fit_vertical_edge`): per row they cost up to half the
-# position's precision; on the bench's 60 JPEG views (regions, 8 frames) the pre-check's
-# standard uncertainty fell by 1.5-2.5 times, its max / RMS error 0.00289 / 0.00093 ->
-# 0.00268 / 0.00091 deg (with the blur-corrected bias simulation)
-SLOPE_ROWS = 8
 
 
 def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
@@ -256,8 +250,7 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
     b = -float(e.line.n[1] / e.line.n[0])
     fits = [fit_vertical_edge(gray, float(e.line.minor_at(y_mid)), b, y_mid,
                               np.arange(r0, r1 + 1), half_width=hw, x_limits=(x0, x1),
-                              spread=spread, blur0=e.blur_px or 1.0, slope_rows=SLOPE_ROWS)
-            for spread in spreads]
+                              spread=spread, blur0=e.blur_px or 1.0) for spread in spreads]
     # the spread model that describes the edge better: residuals in DN over the same pixels
     fit = min((f for f in fits if f is not None), key=lambda f: f.rms_dn, default=None)
     # it refines the edge found, never moves to another one: within 3 px of it over the
@@ -561,7 +554,7 @@ def _jpeg_bias(images: list[np.ndarray], frames: list[SideMeasurement]
                 return None
             got = edge_angle_bias(grays, quality, a, b, y_mid, rows, e.blur_px, e.spread,
                                   e.half_width, (max(int(rx0), 0), min(int(rx1), w)), rng,
-                                  draws=JPEG_BIAS_DRAWS, slope_rows=SLOPE_ROWS)
+                                  draws=JPEG_BIAS_DRAWS)
             if got is None:
                 return None
             total += sign * float(wk) * got.bias_deg
