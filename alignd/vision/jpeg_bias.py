@@ -82,6 +82,7 @@ class EdgeBias:
 
     bias_deg: float
     u_deg: float
+    drawn_blur_px: float | None = None  # the blur the edge was drawn at (see edge_angle_bias)
 
 
 def edge_angle_bias(frames: list[np.ndarray], quality: int, a: float, b: float, y_mid: float,
@@ -176,4 +177,4 @@ def edge_angle_bias(frames: list[np.ndarray], quality: int, a: float, b: float, 
     if len(diffs) < max(2, draws // 2):
         return None
     d = np.asarray(diffs)
-    return EdgeBias(float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size)))
+    return EdgeBias(float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size)), draw_blur)

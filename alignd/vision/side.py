@@ -552,7 +552,9 @@ def _jpeg_bias(images: list[np.ndarray], frames: list[SideMeasurement]
                              min(e.rows[1] - 10, int(ry1) - 5) + 1)
             if rows.size < 40:
                 return None
-            got = edge_angle_bias(grays, quality, a, b, y_mid, rows, e.blur_px, e.spread,
+            # the frames' mean blur: the simulation draws the edge to match it
+            blur = float(np.mean([x.blur_px or e.blur_px for x in seen]))
+            got = edge_angle_bias(grays, quality, a, b, y_mid, rows, blur, e.spread,
                                   e.half_width, (max(int(rx0), 0), min(int(rx1), w)), rng,
                                   draws=JPEG_BIAS_DRAWS)
             if got is None:
