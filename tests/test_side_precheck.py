@@ -260,3 +260,16 @@ def test_jpeg_bias_simulation_draws_the_edge_as_sharp_as_the_lens_made_it() -> N
                           np.random.default_rng(0), draws=8)
     assert got is not None and got.drawn_blur_px is not None
     assert abs(got.drawn_blur_px - 0.45) < 0.05, got.drawn_blur_px
+
+
+def test_every_edge_of_a_view_takes_the_same_blur_model() -> None:
+    """The blur comes from the camera, the same for every edge of a frame. Chosen edge by
+    edge, this seeded JPEG view (quality 71, a lens blur of 0.65 px) had one pole edge take
+    the pixel-grid model, whose error follows the edge's phase: the pre-check erred by
+    0.0027 deg (2.4 times its u). One model for all edges: within 0.001 deg."""
+    sc = random_side_scene(np.random.default_rng(101), "jpeg", frames=8)
+    rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
+    av = measure_tilt_frames(list(sc.frames), **rois)
+    for m in av.frames:
+        assert len({e.spread for e in (*m.sample_edges, *m.pole_edges)}) == 1
+    assert abs(av.tilt_deg - sc.tilt_deg) < 0.001
