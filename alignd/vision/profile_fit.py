@@ -193,6 +193,21 @@ _MU = np.arange(-6.0, 20.25, 0.5)  # the penumbra's centre, px out from the wind
 _SG = np.arange(1.5, 12.25, 0.5)  # its width
 
 
+def _penumbra_grid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The penumbra's shapes over the profile's pixels for every (centre, width) of the
+    grid, less their means (a level is fitted with each), their squared norms and the
+    pixels' positions (px out from the innermost tail pixel)."""
+    out = np.arange(_LONG + _TAILS, dtype=float)
+    z = ndtr((out[None, None, :] - _MU[:, None, None]) / _SG[None, :, None])
+    zc = (z - z.mean(axis=2, keepdims=True)).reshape(-1, out.size)
+    return zc, np.maximum((zc * zc).sum(axis=1), 1e-12), out
+
+
+_GRID = _penumbra_grid()
+_GRID_MU = np.repeat(_MU, _SG.size)
+_GRID_SG = np.tile(_SG, _MU.size)
+
+
 def _penumbra_bend(flat: np.ndarray, r1: _Rows, u: np.ndarray, D: np.ndarray, hw: int,
                    table: tuple[np.ndarray, float, int], geo: np.ndarray, b1: np.ndarray,
                    b2: np.ndarray, n_edges: int, blur: np.ndarray
@@ -220,41 +235,38 @@ def _penumbra_bend(flat: np.ndarray, r1: _Rows, u: np.ndarray, D: np.ndarray, hw
     lo, hi = _step_free_tails(Pw[:, :k], xw[:k], Pw[:, -k:], xw[-k:], u[okw], D[okw], row,
                               table, geo, b1[okw], b2[okw])
     counts = np.bincount(row, minlength=n_edges).astype(float)
-    out = np.arange(k, dtype=float)  # px out from the innermost tail pixel
+    # each edge's mean profile and its rows' variance, by a one-hot product
+    one = np.zeros((n_edges, row.size))
+    one[row, np.arange(row.size)] = 1.0 / np.maximum(counts, 1.0)[row]
     x_in = float(hw - _TAILS + 1)  # the innermost tail pixel's distance from the centre
     bends = []
     found = False
     x = np.arange(-hw, hw + 1, dtype=float)
+    zc, den, out = _GRID
     for side, vals in ((0, lo[:, ::-1]), (1, hi)):
         d_win = (x if side else -x) - x_in  # each window pixel's distance out from the tails
-        prof = np.stack([np.bincount(row, weights=vals[:, j], minlength=n_edges)
-                         for j in range(k)], axis=1) / np.maximum(counts, 1.0)[:, None]
-        var = np.stack([np.bincount(row, weights=vals[:, j] ** 2, minlength=n_edges)
-                        for j in range(k)], axis=1) / np.maximum(counts, 1.0)[:, None]
+        prof = one @ vals
+        var = one @ (vals * vals)
         noise = np.maximum(var - prof ** 2, 1e-6).mean(axis=1) / np.maximum(counts, 1.0)
-        # the line's misfit
-        A = np.column_stack([np.ones(k), out])
-        coef, *_ = np.linalg.lstsq(A, prof.T, rcond=None)
-        ss_lin = ((prof.T - A @ coef) ** 2).sum(axis=0)
-        # the step's: every (centre, width) of the grid, level and height by least squares
-        z = ndtr((out[None, None, :] - _MU[:, None, None]) / _SG[None, :, None])  # (mu, sg, k)
-        zc = z - z.mean(axis=2, keepdims=True)
         pc = prof - prof.mean(axis=1, keepdims=True)  # (edge, k)
-        num = np.einsum("msk,ek->ems", zc, pc)
-        den = np.maximum((zc * zc).sum(axis=2), 1e-12)
-        ss_step = (pc * pc).sum(axis=1)[:, None, None] - num * num / den[None]
+        oc = out - out.mean()
+        ss_all = (pc * pc).sum(axis=1)
+        ss_lin = ss_all - (pc @ oc) ** 2 / float(oc @ oc)  # the line's misfit
+        # the step's: every (centre, width) of the grid, level and height by least squares
+        num = pc @ zc.T  # (edge, grid)
+        ss_step = ss_all[:, None] - num * num / den[None, :]
         # a step hardly wider than the edge's own blur is the edge model's error
-        ss_step = np.where(_SG[None, None, :] >= _PEN_WIDER * blur[:, None, None], ss_step,
-                           np.inf)
-        best = ss_step.reshape(n_edges, -1).argmin(axis=1)
-        im, isg = np.unravel_index(best, den.shape)
-        gain = (ss_lin - ss_step.reshape(n_edges, -1)[np.arange(n_edges), best]) / noise
+        ss_step = np.where(_GRID_SG[None, :] >= _PEN_WIDER * blur[:, None], ss_step, np.inf)
+        best = ss_step.argmin(axis=1)
+        e = np.arange(n_edges)
+        gain = (ss_lin - ss_step[e, best]) / noise
         use = (gain > _BEND_CHI2) & (counts >= 8) & np.isfinite(gain)
-        height = num[np.arange(n_edges), im, isg] / den[im, isg]
+        height = num[e, best] / den[best]
+        mu, sg = _GRID_MU[best], _GRID_SG[best]
         # the step's shape in the window, less its line through the tail pixels (the tails'
         # own level and slope stand): what the floor does beyond the line, toward the edge
-        zw = ndtr((d_win[None, :] - _MU[im][:, None]) / _SG[isg][:, None])  # (edge, pixels)
-        zt = ndtr((out[None, :_TAILS] - _MU[im][:, None]) / _SG[isg][:, None])
+        zw = ndtr((d_win[None, :] - mu[:, None]) / sg[:, None])  # (edge, pixels)
+        zt = ndtr((out[None, :_TAILS] - mu[:, None]) / sg[:, None])
         slope_t = (zt[:, -1] - zt[:, 0]) / (_TAILS - 1)
         level_t = zt.mean(axis=1) - slope_t * (_TAILS - 1) / 2
         g = height[:, None] * (zw - (level_t[:, None] + slope_t[:, None] * d_win[None, :]))
