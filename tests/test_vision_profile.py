@@ -266,3 +266,32 @@ def test_soft_edge_refined_to_its_ends() -> None:
         assert 1.6 < float(wd[0]) < 2.0
         t_area, t_fine = pts.xy[:, 0], fine[0].xy[:, 0]  # columns (edges at 5-40 deg)
         assert t_fine.min() <= t_area.min() + 1.0 and t_fine.max() >= t_area.max() - 1.0
+
+
+@pytest.mark.parametrize(("blur", "bound"), [(0.6, 0.025), (1.0, 0.08), (2.0, 0.3)])
+def test_penumbra_beside_an_edge_moves_it_less(blur: float, bound: float) -> None:
+    """A dark holder on a floor whose brightness climbs out of a cast shadow's penumbra
+    (a Gaussian-blurred step 7 px out, 5.5 px wide, 40 % deep) beside the edge: the penumbra's
+    shoulder bends the floor between the tails and the edge, which a straight tail slope
+    does not follow (the crossings' mean was 0.05 / 0.13 / 0.50 px inward at a blur of
+    0.6 / 1 / 2 px); the penumbra read from the floor beyond the window takes most of that
+    off (0.005 / 0.04 / 0.13 px)."""
+    from scipy.special import ndtr
+
+    w, h = 300, 240
+    ras = Raster((w, h), 400.0, (150.0, 120.0), 0.0)
+    x0 = 120.37  # the edge: the holder left of it
+    poly = np.array([[-50.0, -50.0], [x0, -50.0], [x0, h + 50.0], [-50.0, h + 50.0]])
+    xx = np.arange(w, dtype=np.float64) + 0.5 - x0  # pixel centres, outward distance
+    floor = 190.0 * (1.0 - 0.4 * (1.0 - ndtr((xx - 7.0) / 5.5)))
+    img = np.tile(floor.astype(np.float32), (h, 1))
+    cov = coverage(Polygon(poly), ras, (0, 0, w, h))
+    img += (70.0 - img) * cov
+    img = cv2.GaussianBlur(img, (0, 0), blur)
+    rng = np.random.default_rng(5)
+    img = img + rng.normal(0.0, 1.0, img.shape).astype(np.float32)
+    pts = edge_points(img, np.array([x0, 20.0]), np.array([x0, h - 20.0]), half_width=5,
+                      margin_px=0.0)
+    fine = fit_crossings(img, [pts])[0]
+    assert fine.xy.shape[0] > 0.9 * pts.xy.shape[0]
+    assert abs(float(fine.xy[:, 0].mean()) - x0) < bound

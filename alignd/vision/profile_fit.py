@@ -21,9 +21,11 @@ The slopes b1 and b2 come from the window's tails, as in the area method (one va
 edge, followed locally only where a penumbra crosses it): free per column they would cost
 the position most of its precision. On a soft edge they are measured again after a first
 fit, with the fitted step's own tail taken off and from longer tails: there a slope's error
-moves the crossing most (about 16 px per (DN/px) / DN of contrast at a blur of 2 px). The
-fit starts from the area method's crossing (good to a tenth of a pixel), so a few
-Gauss-Newton iterations suffice.
+moves the crossing most (about 16 px per (DN/px) / DN of contrast at a blur of 2 px). Where
+a cast shadow's penumbra lies beside a side, its shoulder bends the floor between the tails
+and the edge: a blurred step fitted to the side's floor profile beyond the window gives
+that bend (:func:`_penumbra_bend`). The fit starts from the area method's crossing (good to
+a tenth of a pixel), so a few Gauss-Newton iterations suffice.
 """
 
 from __future__ import annotations
@@ -183,6 +185,100 @@ def _refit_slopes(flat: np.ndarray, P: np.ndarray, x: np.ndarray, r1: _Rows,
     return _tail_slopes(P, r1.edge, n_edges, (vlo, vhi))
 
 
+_EVERY = 3  # the columns read for a side's floor profile: every _EVERY-th
+_LONG = 20  # px beyond the window's tails over which a side's floor profile is read
+_BEND_CHI2 = 400.0  # a penumbra's step must explain the profile this much better than a line
+_PEN_WIDER = 1.5  # a penumbra's width, at least this many times the edge's blur
+_MU = np.arange(-6.0, 20.25, 0.5)  # the penumbra's centre, px out from the window's tail
+_SG = np.arange(1.5, 12.25, 0.5)  # its width
+
+
+def _penumbra_grid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The penumbra's shapes over the profile's pixels for every (centre, width) of the
+    grid, less their means (a level is fitted with each), their squared norms and the
+    pixels' positions (px out from the innermost tail pixel)."""
+    out = np.arange(_LONG + _TAILS, dtype=float)
+    z = ndtr((out[None, None, :] - _MU[:, None, None]) / _SG[None, :, None])
+    zc = (z - z.mean(axis=2, keepdims=True)).reshape(-1, out.size)
+    return zc, np.maximum((zc * zc).sum(axis=1), 1e-12), out
+
+
+_GRID = _penumbra_grid()
+_GRID_MU = np.repeat(_MU, _SG.size)
+_GRID_SG = np.tile(_SG, _MU.size)
+
+
+def _penumbra_bend(flat: np.ndarray, r1: _Rows, u: np.ndarray, D: np.ndarray, hw: int,
+                   table: tuple[np.ndarray, float, int], geo: np.ndarray, b1: np.ndarray,
+                   b2: np.ndarray, n_edges: int, blur: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The floor's bend toward each side on either side of it where a penumbra (a blurred
+    step of the floor's brightness, parallel to the side: a cast shadow) lies beside it,
+    as pixel-major arrays for :func:`_fit_tabulated`, or None where no side has one.
+
+    The tails see the penumbra's slope a few pixels out, but its shoulder bends the floor
+    between there and the edge, which moves the crossing (a side 0.4 px off, corpus). The
+    transition cannot tell that bend from its position; the floor beyond the window can:
+    each side's mean profile out to _LONG px, its step (a Gaussian-blurred step on a level,
+    by a grid over its centre and width) extrapolated into the window where it explains the
+    profile clearly better than a line."""
+    hl = hw + _LONG
+    # every _EVERY-th column: the mean profile needs no more, and costs less
+    sub = np.flatnonzero(np.arange(r1.edge.size) % _EVERY == 0)
+    Pw, _cw, okw = _windows(flat, r1.take(sub), hl)
+    okw = sub[okw]
+    if okw.size == 0:
+        return None
+    row = r1.edge[okw]
+    xw = np.arange(-hl, hl + 1, dtype=float)
+    k = _LONG + _TAILS  # the tails and beyond, on either side
+    lo, hi = _step_free_tails(Pw[:, :k], xw[:k], Pw[:, -k:], xw[-k:], u[okw], D[okw], row,
+                              table, geo, b1[okw], b2[okw])
+    counts = np.bincount(row, minlength=n_edges).astype(float)
+    # each edge's mean profile and its rows' variance, by a one-hot product
+    one = np.zeros((n_edges, row.size))
+    one[row, np.arange(row.size)] = 1.0 / np.maximum(counts, 1.0)[row]
+    x_in = float(hw - _TAILS + 1)  # the innermost tail pixel's distance from the centre
+    bends = []
+    found = False
+    x = np.arange(-hw, hw + 1, dtype=float)
+    zc, den, out = _GRID
+    for side, vals in ((0, lo[:, ::-1]), (1, hi)):
+        d_win = (x if side else -x) - x_in  # each window pixel's distance out from the tails
+        prof = one @ vals
+        var = one @ (vals * vals)
+        noise = np.maximum(var - prof ** 2, 1e-6).mean(axis=1) / np.maximum(counts, 1.0)
+        pc = prof - prof.mean(axis=1, keepdims=True)  # (edge, k)
+        oc = out - out.mean()
+        ss_all = (pc * pc).sum(axis=1)
+        ss_lin = ss_all - (pc @ oc) ** 2 / float(oc @ oc)  # the line's misfit
+        # the step's: every (centre, width) of the grid, level and height by least squares
+        num = pc @ zc.T  # (edge, grid)
+        ss_step = ss_all[:, None] - num * num / den[None, :]
+        # a step hardly wider than the edge's own blur is the edge model's error
+        ss_step = np.where(_GRID_SG[None, :] >= _PEN_WIDER * blur[:, None], ss_step, np.inf)
+        best = ss_step.argmin(axis=1)
+        e = np.arange(n_edges)
+        gain = (ss_lin - ss_step[e, best]) / noise
+        use = (gain > _BEND_CHI2) & (counts >= 8) & np.isfinite(gain)
+        height = num[e, best] / den[best]
+        mu, sg = _GRID_MU[best], _GRID_SG[best]
+        # the step's shape in the window, less its line through the tail pixels (the tails'
+        # own level and slope stand): what the floor does beyond the line, toward the edge
+        zw = ndtr((d_win[None, :] - mu[:, None]) / sg[:, None])  # (edge, pixels)
+        zt = ndtr((out[None, :_TAILS] - mu[:, None]) / sg[:, None])
+        slope_t = (zt[:, -1] - zt[:, 0]) / (_TAILS - 1)
+        level_t = zt.mean(axis=1) - slope_t * (_TAILS - 1) / 2
+        g = height[:, None] * (zw - (level_t[:, None] + slope_t[:, None] * d_win[None, :]))
+        g = np.where(use[:, None], g, 0.0)
+        g = np.where((d_win < 0)[None, :], g, 0.0)  # (beyond, the tails' slope stands)
+        found |= bool(use.any())
+        bends.append(g)
+    if not found:
+        return None
+    return bends[0][r1.edge].T.copy(), bends[1][r1.edge].T.copy()
+
+
 def _start(P: np.ndarray, x: np.ndarray, b1: np.ndarray, b2: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray]:
     a1 = (P[:, 0] + P[:, 1]) / 2 - b1 * x[:2].mean()  # (as .mean(axis=1), at less cost)
@@ -252,12 +348,14 @@ def _table_step(table: tuple[np.ndarray, float, int], row: np.ndarray, d: np.nda
 
 def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
                    blur: np.ndarray, geo: np.ndarray, b1: np.ndarray, b2: np.ndarray,
-                   iterations: int, table: tuple[np.ndarray, float, int] | None = None
+                   iterations: int, table: tuple[np.ndarray, float, int] | None = None,
+                   bend: tuple[np.ndarray, np.ndarray] | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_fit` with s fixed per edge, S and S' read from one table per edge
     (:func:`_step_table`, built here unless given) and the 3 x 3 normal equations of
     (a1, D, u) solved in closed form; returns u, D and each row's residual RMS (of the
-    last iteration's start)."""
+    last iteration's start). ``bend``: the floor's departure from its tails' line on
+    either side at each pixel (pixel-major, see :func:`_penumbra_bend`)."""
     tab, reach, ng = table if table is not None else _step_table(
         float(np.max(np.abs(x))), blur, geo)
     # pixel-major arrays (pixel, row): each row's parameters then broadcast along the long
@@ -272,6 +370,10 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     a1, D = _start(P, x, b1, b2)
     db = b2 - b1
     base1 = np.ascontiguousarray(P.T) - xc * b1
+    dbend: np.ndarray | float = 0.0
+    if bend is not None:
+        base1 -= bend[0]
+        dbend = bend[1] - bend[0]
     m = float(P.shape[1])
     ones = np.ones(P.shape[1])  # sums over the pixels as a product
     for _ in range(iterations):
@@ -283,7 +385,7 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         node = tab.take(i, axis=0)
         S = node[..., 0] + node[..., 1] * f
         S1 = node[..., 2] + node[..., 3] * f
-        amp = D + xc * db
+        amp = D + xc * db + dbend
         r = base1 - a1 - amp * S
         g = -nu * amp * S1
         sS, sg = ones @ S, ones @ g
@@ -447,6 +549,13 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
                                geo, b1, b2, hw, ne)
         u, D, misfit = _fit_tabulated(P, x, u0, r1.edge, blur_e, geo, b1, b2, iterations,
                                       table)
+    ok1 = np.isfinite(u) & np.isfinite(D)
+    u1 = np.where(ok1, u, r1.c - centre)
+    bend = _penumbra_bend(flat, r1, u1, np.where(ok1, D, 0.0), hw, table, geo, b1, b2, ne,
+                          blur_e)
+    if bend is not None:
+        u, D, misfit = _fit_tabulated(P, x, u1, r1.edge, blur_e, geo, b1, b2, iterations,
+                                      table, bend)
     good = np.isfinite(u) & (np.abs(u) < hw - _TAILS) & (np.abs(D) > 1e-6)
     # a column the model does not fit (a hole, a screw or a shadow's edge in its window)
     typical = segment_median(misfit, r1.edge, ne, upper=False)
