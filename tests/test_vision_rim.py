@@ -262,8 +262,8 @@ def test_fit_rim_recovers_from_a_start_pulled_onto_a_cable(
     cv2.polylines(mask, [np.round(pts * 16).astype(np.int32)], False, 255, 5, cv2.LINE_AA, 4)
     img += (40.0 - img) * cv2.GaussianBlur(mask.astype(np.float32) / 255, (0, 0), 0.7)
     start = np.array([cx + 3.0, cy + 0.5, a + 3.5, b, r])
-    monkeypatch.setattr(rim, "_coarse_ellipse",
-                        lambda gray, mc: rim._conic_from_params(start))
+    monkeypatch.setattr(rim, "_coarse_ellipses",
+                        lambda gray, mc: [rim._conic_from_params(start)])
     f = fit_rim(np.clip(img, 0, 255).astype(np.uint8), None, None)
     assert f.center_px == pytest.approx((cx, cy), abs=0.05)
     assert f.axes_px == pytest.approx((a, b), abs=0.05)
