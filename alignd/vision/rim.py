@@ -182,11 +182,12 @@ def _coarse_ellipses(gray: np.ndarray, min_contrast: float) -> list[np.ndarray]:
     """The rim at 1/4 scale, as full-res conics to refine in turn: elliptical outlines
     (:func:`_contours`), each checked against the image (:func:`_edge_support`); the best
     supported first, the outermost of those about as well supported (a rim ring's outer
-    edge, not its inner one), then the other well supported ones, then circles voted by
-    the image's gradients (:func:`_hough_candidates`; where a shadow and a cable break
-    every outline open). Later ones are only refined when the earlier ones' fits fail
-    (a holder smeared over the rim in a turned frames' mean can draw the best outline
-    off it)."""
+    edge, not its inner one), then the other outlines and the circles voted by the
+    image's gradients (:func:`_hough_candidates`; where a shadow and a cable break every
+    outline open), best supported first, each with a support of ``MIN_SUPPORT`` or more.
+    Later ones are only refined when the earlier ones' fits are refused (a holder smeared
+    over the rim in a turned frames' mean can let a cable's loop outscore every outline
+    of the disc)."""
     h, w = gray.shape
     f = 4
     small = cv2.resize(gray, (w // f, h // f), interpolation=cv2.INTER_AREA)
@@ -239,6 +240,9 @@ def _coarse_ellipses(gray: np.ndarray, min_contrast: float) -> list[np.ndarray]:
     hough = _hough_candidates(gray, u8, f, min_contrast)
     out += [k for sc, k in sorted([*scored, *hough], key=lambda t: -t[0])
             if sc >= MIN_SUPPORT and not any(k is q for q in out)]
+    if out and top < MIN_SUPPORT:
+        log.info("rim image: no outline followed the rim (best support %.2f); a circle "
+                 "voted by the gradients did", top)
     if not out:
         top = max(top, max((sc for sc, _ in hough), default=0.0))
         raise VisionError("rim image: no elliptical rim found" + (
@@ -876,8 +880,7 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
                      first)
         break
     else:
-        assert first is not None  # _coarse_ellipses returns at least one candidate
-        raise first
+        raise first or VisionError("rim image: no elliptical rim found")
     xy = prof.xy[use]
     cov = _ellipse_covariance(p, xy, prof.sigma[use])[2:4, 2:4]
     cx, cy, a, b, t = (float(v) for v in p)
