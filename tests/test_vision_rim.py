@@ -262,8 +262,8 @@ def test_fit_rim_recovers_from_a_start_pulled_onto_a_cable(
     cv2.polylines(mask, [np.round(pts * 16).astype(np.int32)], False, 255, 5, cv2.LINE_AA, 4)
     img += (40.0 - img) * cv2.GaussianBlur(mask.astype(np.float32) / 255, (0, 0), 0.7)
     start = np.array([cx + 3.0, cy + 0.5, a + 3.5, b, r])
-    monkeypatch.setattr(rim, "_coarse_ellipse",
-                        lambda gray, mc: rim._conic_from_params(start))
+    monkeypatch.setattr(rim, "_coarse_ellipses",
+                        lambda gray, mc: [rim._conic_from_params(start)])
     f = fit_rim(np.clip(img, 0, 255).astype(np.uint8), None, None)
     assert f.center_px == pytest.approx((cx, cy), abs=0.05)
     assert f.axes_px == pytest.approx((a, b), abs=0.05)
@@ -372,3 +372,25 @@ def test_frames_with_a_holder_turning_over_the_rim_are_fitted() -> None:
         fit_rim(np.stack(sc.frames).mean(axis=0, dtype=np.float32), None, None)
     f = fit_rim_frames(sc.frames, None, None)
     assert abs(f.eccentricity - sc.eccentricity) <= min(0.003, 3 * f.eccentricity_std)
+
+
+def test_fit_rim_finds_a_dark_disc_crossed_by_a_cable_and_a_shadow() -> None:
+    """The corpus' scene #26 of bench seed 2024 (rim seed 2324; the generator's state
+    before it, so the test need not draw the 26 scenes before it): a dark disc, a bright
+    cable across it and a shadow's edge that makes the floor on one side about as dark.
+    No outline at any level nor any Canny chain followed the rim (the best candidate's
+    edge support 0.55, "no elliptical rim found") though the true ellipse's is 0.96; a
+    circle voted by the gradients (Hough) lands on it."""
+    from drivers.sim.scenes import random_rim_scene
+    rng = np.random.default_rng()
+    rng.bit_generator.state = {
+        "bit_generator": "PCG64", "has_uint32": 1, "uinteger": 762999726,
+        "state": {"state": 7491133373549638027148934880759949826,
+                  "inc": 55807410728343984531942684752446525213}}
+    sc = random_rim_scene(rng, "dark disc")
+    assert sc.category == "dark disc"
+    f = fit_rim(sc.image, None, None)
+    assert f.center_px == pytest.approx(sc.center_px, abs=0.3)
+    assert max(f.axes_px) == pytest.approx(max(sc.axes_px), abs=0.3)
+    assert abs(f.eccentricity - sc.eccentricity) <= 3 * f.eccentricity_std
+    assert abs(f.eccentricity - sc.eccentricity) <= 0.003
