@@ -599,7 +599,8 @@ class _Run:
                               f"({det.reason or 'no detection'}); nothing moved")
         if self.tools.eccentricity is not None or self.tools.rim is not None:
             check_abort(self.abort)
-            turn = pc.rim_turn_deg if pc.rim_frames > 1 else 0.0
+            # (tools without a rim fit read one still frame)
+            turn = pc.rim_turn_deg if pc.rim_frames > 1 and self.tools.rim is not None else 0.0
             self._emit("precheck", "top-camera eccentricity" + (
                 f" ({pc.rim_frames} frames, the turntable turned {turn:g} deg between them)"
                 if turn else ""))
