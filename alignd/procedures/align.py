@@ -48,6 +48,7 @@ from alignd.procedures.sweep import (
     CentrePool,
     Measurement,
     SweepPlan,
+    grab_frames,
     grab_fresh,
     grab_rim_frames,
     measure,
@@ -56,7 +57,7 @@ from alignd.procedures.sweep import (
 )
 from alignd.procedures.tools import RimReading, TiltReading, Tools, default_tools
 from alignd.textfmt import identity_text
-from drivers.camera import Camera, Frame
+from drivers.camera import Camera
 
 log = logging.getLogger(__name__)
 
@@ -658,10 +659,7 @@ class _Run:
         thousandths of a degree at worst). Tools without a multi-frame measurement give
         the mean of ``tools.tilt`` and, from 2 frames on, its standard error."""
         assert self.tools is not None
-        frames: list[Frame] = []
-        for _ in range(n):
-            check_abort(self.abort)
-            frames.append(grab_fresh(side, side.clock.now()))
+        frames = grab_frames(side, n, self.abort)
         if self.tools.tilt_frames is not None:
             return self.tools.tilt_frames(frames)
         assert self.tools.tilt is not None

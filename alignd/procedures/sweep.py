@@ -54,6 +54,16 @@ def grab_fresh(cam: Camera, after: float) -> Frame:
     return frame
 
 
+def grab_frames(cam: Camera, n: int, abort: threading.Event | None = None) -> list[Frame]:
+    """``n`` frames of a still view, each exposed after the one before (a real camera's
+    frames have independent noise, which their mean averages)."""
+    frames = []
+    for _ in range(n):
+        check_abort(abort)
+        frames.append(grab_fresh(cam, cam.clock.now()))
+    return frames
+
+
 def rim_turn_angles(start_deg: float, n: int, turn_deg: float, lim_min: float,
                     lim_max: float) -> np.ndarray:
     """The turntable angles of ``n`` rim frames ``turn_deg`` apart, centred on
@@ -74,11 +84,7 @@ def grab_rim_frames(rig: Rig, cam: Camera, n: int, turn_deg: float = 0.0,
     where it stood: the disc and its texture turn while the rim's ellipse stays, so the
     texture's pull on e, which no number of still frames averages, averages out."""
     if turn_deg <= 0 or n < 2:
-        frames = []
-        for _ in range(n):
-            check_abort(abort)
-            frames.append(grab_fresh(cam, cam.clock.now()))
-        return frames
+        return grab_frames(cam, n, abort)
     tt = rig.axis("turntable")
     lim = tt.config.soft_limits
     start = tt.position()
