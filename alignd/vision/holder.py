@@ -47,6 +47,7 @@ from alignd.vision.edges import (
     residual_correlation,
 )
 from alignd.vision.holder_search import search_candidates
+from alignd.vision.holder_steps import inner_step
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import fit_crossings_blur
 
@@ -243,6 +244,10 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
                 if again.ok:
                     det = again
             if det.ok:
+                det = _not_a_shadow(gray, det, polarity, expected_size_px, hint_arr,
+                                    min_contrast, max_rms_px, passes, lens, size_tolerance,
+                                    refine == "profile")
+            if det.ok:
                 return det
             reasons.append(f"at the previous corners: {det.reason}")
         except VisionError as exc:
@@ -265,6 +270,10 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
             det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
                           min_contrast, max_rms_px, passes, lens, size_tolerance,
                           refine == "profile")
+            if det.ok:
+                det = _not_a_shadow(gray, det, polarity, expected_size_px, hint_arr,
+                                    min_contrast, max_rms_px, passes, lens, size_tolerance,
+                                    refine == "profile")
         except VisionError as exc:
             reasons.append(f"candidate at ({ctr[0]:.0f}, {ctr[1]:.0f}): {exc}")
             continue
@@ -284,6 +293,43 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
                            center_px=np.full(2, np.nan), angle_deg=math.nan, quality=0.0,
                            corner_sigma_px=math.nan, polarity=last.polarity,
                            size_px=(math.nan, math.nan), reason=why)
+
+
+def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
+                  expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
+                  min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None,
+                  size_tolerance: float, profile: bool) -> HolderDetection:
+    """``det``, unless one of its sides is a shadow's outer edge (a second step the same
+    way just inside it, :func:`alignd.vision.holder_steps.inner_step`): then the holder
+    measured again with that side moved in to the inner step, or not ok with the reason.
+    Never a holder a shadow's width too large."""
+    step = inner_step(gray, det.corners_px)
+    if step is None:
+        return det
+    k = step.side
+    c = np.asarray(det.corners_px, float)
+    ctr = c.mean(axis=0)
+    a, b = c[k], c[(k + 1) % 4]
+    u = (b - a) / max(float(np.linalg.norm(b - a)), 1e-9)
+    n = np.array([-u[1], u[0]])
+    if float(np.dot((a + b) / 2 - ctr, n)) > 0:
+        n = -n  # inward
+    moved = c.copy()
+    moved[k] += step.depth_px * n
+    moved[(k + 1) % 4] += step.depth_px * n
+    why = (f"side {k} has a second step the same way {step.depth_px:.0f} px inside it "
+           f"({100 * step.ratio:.0f} % of its own: a shadow's edge taken for the side?)")
+    try:
+        again = _refine(gray, order_corners(moved), polarity, expected_size_px, hint,
+                        min_contrast, max_rms_px, passes, lens, size_tolerance, profile)
+    except VisionError as exc:
+        again = replace(det, ok=False, reason=f"{why}; measured at the inner step: {exc}")
+    if again.ok and inner_step(gray, again.corners_px) is None:
+        log.debug("top image: %s; measured at the inner step instead", why)
+        return again
+    return replace(det, ok=False, corners_px=np.full((4, 2), np.nan),
+                   center_px=np.full(2, np.nan), angle_deg=math.nan, quality=0.0,
+                   corner_ok=np.zeros(4, bool), size_px=(math.nan, math.nan), reason=why)
 
 
 def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,

@@ -1,0 +1,140 @@
+"""A check of a found holder: is one of its sides the outer edge of a shadow?
+
+A dark holder casts a shadow onto a bright disc: going outward across that side the image
+steps twice the same way, holder -> shadow -> disc. When the shadow band is wider than the
+coarse side search (+-10 px), the found rectangle can take the shadow's outer edge for the
+side and still pass every other check: it is straight, of the right polarity, and with a
+band a tenth of the holder wide it is within the size tolerance. It is then wrong by the
+band's width (16 px on a corpus scene). A true side has the holder's own level just inside
+it; a shadow's edge has the band's level there, between the holder's and the outside's.
+(A label or a sample near a side does not look like that: the level just inside is the
+holder's, whatever lies further in.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["InnerStep", "inner_step", "side_ratios"]
+
+# levels are medians over positions along the middle 60 % of a side, each the mean of a
+# few pixels at a depth band (px, + outward): outside, just inside (and deeper inside)
+_OUT, _IN = (4.0, 7.0), (-7.0, -4.0)
+_FAR_PX = 24.0  # the inner step is looked for this deep (at most 0.35 of the extent across)
+# the level just inside a side differing from the level deeper inside and from the
+# holder's interior (the median over its middle) the same way as the side's own step, by
+# at least this fraction of that step, flags the side (docs/vision.md: the corpus' values)
+_MIN_RATIO = 0.5
+_MIN_STEP_DN = 8.0  # and at least this, in grey levels (texture and noise stay below)
+
+
+@dataclass(frozen=True)
+class InnerStep:
+    """Side ``side`` (from corner ``side`` to ``side + 1``) has a second step of the
+    same sign ``depth_px`` inside it: the holder's true side is likely there."""
+
+    side: int
+    ratio: float  # the inner step over the side's own step
+    depth_px: float  # from the found side inward to the inner step's half-way level
+
+
+def _sample_points(gray: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Nearest-pixel grey levels at the points ``p`` (..., 2), as float32."""
+    h, w = gray.shape
+    x = np.clip(np.rint(p[..., 0]).astype(np.intp), 0, w - 1)
+    y = np.clip(np.rint(p[..., 1]).astype(np.intp), 0, h - 1)
+    return gray[y, x].astype(np.float32)
+
+
+def _interior(gray: np.ndarray, c: np.ndarray) -> float:
+    """The median grey level over the middle of the quadrilateral (0.2-0.8 of the way
+    between its sides both ways): the holder's own level, a label or a sample aside."""
+    t = np.linspace(0.2, 0.8, 12)
+    s, r = np.meshgrid(t, t)
+    p = ((1 - s) * (1 - r))[..., None] * c[0] + (s * (1 - r))[..., None] * c[1] \
+        + (s * r)[..., None] * c[2] + ((1 - s) * r)[..., None] * c[3]
+    return float(np.median(_sample_points(gray, p)))
+
+
+def side_ratios(gray: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per side of ``corners`` (4, 2, cyclic order): the level just inside it minus the
+    level deeper inside (``_FAR_PX``, at most 0.35 of the extent across), and minus the
+    holder's interior level, each over the side's own step (0 where of the other sign, or
+    under ``_MIN_STEP_DN``, or the holder is too narrow)."""
+    c = np.asarray(corners, float)
+    nxt = c[[1, 2, 3, 0]]
+    edge = nxt - c
+    length = np.linalg.norm(edge, axis=1)
+    zero = np.zeros(4)
+    if length.min() < 8.0:
+        return zero, zero
+    n = np.stack([-edge[:, 1], edge[:, 0]], axis=1) / length[:, None]
+    n[np.sum(((c + nxt) / 2 - c.mean(axis=0)) * n, axis=1) < 0] *= -1  # outward
+    far = np.minimum(_FAR_PX, 0.35 * np.linalg.norm(c[[2, 3, 0, 1]] - nxt, axis=1))
+    frac = np.linspace(0.2, 0.8, 16)
+    band = np.arange(4.0)
+    # depths per side: just inside, outside, and the deep band (from -far, 4 px)
+    depths = np.concatenate([np.broadcast_to(np.arange(_IN[0], _IN[1] + 0.5), (4, 4)),
+                             np.broadcast_to(np.arange(_OUT[0], _OUT[1] + 0.5), (4, 4)),
+                             -far[:, None] + band[None]], axis=1)  # (4, 12)
+    p = (c[:, None, None] + frac[None, :, None, None] * edge[:, None, None]
+         + depths[:, None, :, None] * n[:, None, None])
+    v = _sample_points(gray, p)  # (side, position, depth)
+    inn, out, deep = v[..., :4].mean(axis=2), v[..., 4:8].mean(axis=2), v[..., 8:].mean(axis=2)
+    step = np.median(out - inn, axis=1)
+    to_deep = np.median(inn - deep, axis=1)
+    to_level = np.median(inn, axis=1) - _interior(gray, c)
+    ok = (np.abs(step) > 1e-6) & (far > -_IN[0])
+    out_r = []
+    for d in (to_deep, to_level):
+        good = ok & (d * step > 0) & (np.abs(d) >= _MIN_STEP_DN)
+        out_r.append(np.where(good, d / np.where(good, step, 1.0), 0.0))
+    return out_r[0], out_r[1]
+
+
+def inner_step(gray: np.ndarray, corners: np.ndarray) -> InnerStep | None:
+    """The side of the quadrilateral ``corners`` (4, 2, in cyclic order) whose inside
+    band differs most, toward the outside's level, from both the holder's level (its
+    interior's median) and the level deeper inside, with a step between the two: a
+    shadow's edge taken for the side; else None. (Tracking runs it every frame: the four
+    sides' bands are read in one go, about 0.3 ms.)"""
+    c = np.asarray(corners, float)
+    r_deep, r_level = side_ratios(gray, c)
+    ratio = np.minimum(r_deep, r_level)
+    k = int(np.argmax(ratio))
+    if ratio[k] < _MIN_RATIO:
+        return None
+    a, b = c[k], c[(k + 1) % 4]
+    length = float(np.linalg.norm(b - a))
+    u = (b - a) / length
+    n = np.array([-u[1], u[0]])
+    if float(np.dot((a + b) / 2 - c.mean(axis=0), n)) < 0:
+        n = -n
+    far = min(_FAR_PX, 0.35 * float(np.linalg.norm(c[(k + 2) % 4] - b)))
+    depth = _inner_depth(gray, a, u, n, length, far)
+    return None if depth is None else InnerStep(k, float(ratio[k]), depth)
+
+
+def _inner_depth(gray: np.ndarray, a: np.ndarray, u: np.ndarray, n: np.ndarray,
+                 length: float, far: float) -> float | None:
+    """How far inside the side (from corner ``a`` along ``u``, ``n`` outward) the median
+    profile, going inward, first passes half-way from the level just inside to the level
+    ``far`` inside: the inner step, where the holder's true side likely is (None when
+    there is no such step, only a slow change)."""
+    frac = np.linspace(0.2, 0.8, 16)
+    depths = np.arange(_IN[1], -far - 0.5, -1.0)  # from just inside, inward
+    p = a + (frac[:, None, None] * length) * u + depths[None, :, None] * n
+    prof = np.median(_sample_points(gray, p), axis=0)
+    half = 0.5 * (float(prof[:3].mean()) + float(prof[-3:].mean()))
+    past = np.nonzero((prof - half) * np.sign(prof[0] - half) <= 0)[0]
+    if not past.size:
+        return None
+    # a step: the profile crosses half-way within a few px (a blurred edge), not by a
+    # slow change over the whole depth (a soft shadow, the light's gradient)
+    lo = np.nonzero((prof - (0.75 * prof[0] + 0.25 * prof[-1])) * np.sign(prof[0] - half) <= 0)[0]
+    hi = np.nonzero((prof - (0.25 * prof[0] + 0.75 * prof[-1])) * np.sign(prof[0] - half) <= 0)[0]
+    if not lo.size or not hi.size or hi[0] - lo[0] > 8:
+        return None
+    return float(-depths[past[0]])
