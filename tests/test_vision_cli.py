@@ -36,6 +36,12 @@ def images(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
                                    axis_px=(640.0, 360.0)))
     rim = d / "rim.png"
     cv2.imwrite(str(rim), render_top(w.top_scene(), w.top_camera, OPTS, rng))
+    for k in range(4):  # frames of one still view, their own noise each
+        f = d / f"side_{k}.png"
+        cv2.imwrite(str(f), render_side(posed_world(SimWorldConfig(tilt_deg=0.3)).side_scene(),
+                                        OPTS, rng))
+        f = d / f"rim_{k}.png"
+        cv2.imwrite(str(f), render_top(w.top_scene(), w.top_camera, OPTS, rng))
     blank = d / "blank.png"
     cv2.imwrite(str(blank), np.full((720, 1280), 100, np.uint8))
     bad = d / "bad.png"
@@ -98,6 +104,36 @@ def test_side_and_rim_json(images, capsys) -> None:
     assert set(o["ellipse"]) == {"center_px", "axes_px", "angle_deg"}
     assert o["eccentricity"] == pytest.approx(0.0688, abs=0.003)
     assert o["camera_zenith_deg"] == pytest.approx(4.0, abs=0.1)
+
+
+def test_mean_of_still_frames_is_one_result(images, capsys) -> None:
+    d = images["dir"]
+    sides = [str(d / f"side_{k}.png") for k in range(4)]
+    assert main(["analyze", "side", *sides, "--mean", "--json"]) == 0
+    objs = _lines(capsys.readouterr().out)
+    assert len(objs) == 1 and objs[0]["files"] == sides and objs[0]["frames"] == 4
+    o = objs[0]
+    assert o["tilt_deg"] == pytest.approx(0.3, abs=0.002)
+    assert o["tilt_deg"] == pytest.approx(np.mean(o["frame_tilts_deg"]), abs=1e-9)  # PNG: raw
+    rims = [str(d / f"rim_{k}.png") for k in range(4)]
+    assert main(["analyze", "rim", rims[0], "--json"]) == 0
+    one = _lines(capsys.readouterr().out)[0]
+    assert main(["analyze", "rim", *rims, "--mean", "--json"]) == 0
+    o = _lines(capsys.readouterr().out)[0]
+    assert o["frames"] == 4 and o["files"] == rims
+    assert o["eccentricity"] == pytest.approx(0.0688, abs=0.003)
+    assert o["eccentricity_std"] < one["eccentricity_std"]  # four frames' noise averaged
+    assert main(["analyze", "rim", *rims, "--mean"]) == 0
+    assert capsys.readouterr().out.startswith("mean of 4 frames: ellipse centre")
+
+
+def test_mean_refuses_what_it_cannot_average(images, capsys) -> None:
+    assert main(["analyze", "top", *images["tops"], "--mean"]) == 2
+    assert "--mean applies to 'analyze side' and 'analyze rim'" in capsys.readouterr().err
+    assert main(["analyze", "rim", images["rim"], images["bad"], "--mean", "--json"]) == 2
+    cap = capsys.readouterr()
+    assert "cannot read image" in _lines(cap.out)[0]["error"]
+    assert cap.err.count("alignctl analyze: error:") == 1
 
 
 def test_unreadable_and_targetless_images_exit_2(images, capsys) -> None:

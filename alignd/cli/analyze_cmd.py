@@ -8,7 +8,10 @@
 
 Each image is analysed on its own: an unreadable image or one without a target is
 reported (stderr, and an ``{"file", "error"}`` line with ``--json``), the others are still
-analysed, and the exit code is then 2.
+analysed, and the exit code is then 2. With ``--mean`` (side, rim) the images are frames of
+one still view, measured together as the alignment's pre-check does (the mean of their
+noise; JPEG frames' coding bias taken off for the side): one result for all of them, or
+one error (exit code 2).
 """
 
 from __future__ import annotations
@@ -37,6 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("images", nargs="+", metavar="IMAGE", help="image file(s): PNG, JPEG, TIFF...")
     p.add_argument("--json", action="store_true",
                    help="one JSON object per line per image (the analyze-output contract)")
+    p.add_argument("--mean", action="store_true",
+                   help="side, rim: the images are frames of one still view; measure them "
+                        "together as the pre-check does (one result, u from all frames)")
     g = p.add_argument_group("top")
     g.add_argument("--expected-size", metavar="L,S", type=_pair,
                    help="holder's long and short side in px (rejects other blobs)")
@@ -188,12 +194,48 @@ def _analyze_one(kind: str, name: str, args: argparse.Namespace,
     return f.to_json(), line, None
 
 
+def _analyze_mean(kind: str, names: list[str], args: argparse.Namespace
+                  ) -> tuple[dict[str, object], str]:
+    """One measurement from all the frames (``--mean``): JSON object and human line."""
+    images = [read_image(n) for n in names]
+    if any(img.shape != images[0].shape for img in images):
+        raise InputError("--mean: the frames differ in size (not one camera's view)")
+    if kind == "side":
+        from alignd.vision.side import measure_tilt_frames
+        t = measure_tilt_frames(images, pole_roi_px=args.pole_roi, sample_roi_px=args.sample_roi)
+        line = (f"sample {t.to_json()['sample_angle_deg']:+.4f} deg  tilt {t.tilt_deg:+.4f} "
+                f"+- {t.u_deg:.4f} deg")
+        return t.to_json(), line
+    from alignd.vision.rim import fit_rim_frames
+    f = fit_rim_frames(images, args.radius_mm, args.height_mm)
+    line = (f"ellipse centre ({f.center_px[0]:.3f}, {f.center_px[1]:.3f}) px  axes "
+            f"{f.axes_px[0]:.3f} x {f.axes_px[1]:.3f} px  e {f.eccentricity:.4f} +- "
+            f"{_fmt(f.eccentricity_std, 4)}  camera zenith {_fmt(f.camera_zenith_deg, 3)} deg")
+    return {**f.to_json(), "frames": len(images)}, line
+
+
 def run(args: argparse.Namespace) -> int:
     from alignd.cli import EXIT_OK, EXIT_USAGE
 
     if args.kind != "top" and (args.sweep_out or args.angles):
         raise InputError("--sweep-out/--angles apply to 'analyze top' only")
+    if args.mean and args.kind == "top":
+        raise InputError("--mean applies to 'analyze side' and 'analyze rim' (a top sweep's "
+                         "frames are at different angles: --sweep-out)")
     _apply_config(args)
+    if args.mean:
+        try:
+            obj, line = _analyze_mean(args.kind, list(args.images), args)
+        except (InputError, VisionError) as exc:
+            print(f"alignctl analyze: error: {exc}", file=sys.stderr)
+            if args.json:
+                print(json.dumps({"files": list(args.images), "error": str(exc)}), flush=True)
+            return EXIT_USAGE
+        if args.json:
+            print(json.dumps({"files": list(args.images), **obj}), flush=True)
+        else:
+            print(f"mean of {len(args.images)} frames: {line}", flush=True)
+        return EXIT_OK
     angles: list[float] | None = None
     if args.sweep_out:
         if args.angles is not None:
