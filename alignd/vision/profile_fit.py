@@ -24,8 +24,11 @@ fit, with the fitted step's own tail taken off and from longer tails: there a sl
 moves the crossing most (about 16 px per (DN/px) / DN of contrast at a blur of 2 px). Where
 a cast shadow's penumbra lies beside a side, its shoulder bends the floor between the tails
 and the edge: a blurred step fitted to the side's floor profile beyond the window gives
-that bend (:func:`_penumbra_bend`). The fit starts from the area method's crossing (good to
-a tenth of a pixel), so a few Gauss-Newton iterations suffice.
+that bend (:func:`_penumbra_bend`). Pixels clipped at the sensor's full scale (or at zero)
+say only that the level is beyond the clip and are left out where the model is beyond it
+too (:func:`_censored`): read as levels they made a saturated holder's step look smaller
+and sharper. The fit starts from the area method's crossing (good to a tenth of a pixel),
+so a few Gauss-Newton iterations suffice.
 """
 
 from __future__ import annotations
