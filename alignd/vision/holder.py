@@ -32,6 +32,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
+from scipy.special import ndtri
 
 from alignd.errors import VisionError
 from alignd.vision.edges import (
@@ -64,6 +65,15 @@ _AGREE_PX, _AGREE_SIGMA = 0.05, 3.0  # profile vs area corners: allowed differen
 # +-5 px window: refined corners it rejects are checked once more against its +-9 px ones
 # (1.0 and 1.2 alike on the corpus)
 _SOFT_BLUR_PX = 1.0
+# where a side's edge pixels are clipped (at the sensor's full scale or at zero) in more
+# than this share of its columns, the area method reads the clip as the level and errs
+# toward the unclipped side (see _clip_offset), while the profile fit leaves the clipped
+# pixels out: the agreement test allows for that offset there
+_CLIP_SHARE = 0.2
+# ... and by at least this much (px): a level within a few noise sigma of full scale has
+# its noise clipped, which lowers the tails' mean (corpus #751 of the bench's seed: a
+# holder at about full scale, area corners 0.3 px off where the step's clip explains 0.1)
+_CLIP_AGREE_PX = 0.3
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 
@@ -446,6 +456,9 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         moved = float(np.max(np.linalg.norm(det3.corners_px - det.corners_px, axis=1))) \
             if det3.ok else math.inf
         agree = moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px
+        if det3.ok and not agree and _clipped_share(gray, used) > _CLIP_SHARE:
+            agree = moved <= (_AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px
+                              + max(_CLIP_AGREE_PX, _clip_offset(used, fine, widths)))
         if (det3.ok and not agree and hw == _HALF_WIDTH
                 and np.nanmax(widths, initial=0.0) > _SOFT_BLUR_PX):
             # a soft side's transition overflows the area method's +-5 px, which then
@@ -467,6 +480,49 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
     return det
+
+
+def _clip_offset(area: list[tuple[Line | None, EdgePoints]],
+                 fine: list[tuple[Line | None, EdgePoints]], widths: np.ndarray) -> float:
+    """How far the area method's corners may lie from the refined ones on clipped sides.
+
+    A step of height D blurred by s and clipped at a level a fraction 1 / k of D up (its
+    tails then read D / k) has its area crossing moved toward the unclipped side by
+    s k phi(Phi^-1(1 / k)) (the integral of min(k Phi, 1) - Phi; 0.8 s at k = 2). k is
+    each side's fitted step height over the area method's; a corner moves with both of
+    its sides: sqrt(2) times the largest side's offset (its windows' ends, which cut the
+    integral short, make the area method's own offset a little smaller)."""
+    worst = 0.0
+    for (_la, pa), (_lf, pf), s in zip(area, fine, widths, strict=True):
+        if pa.xy.shape[0] == 0 or pf.xy.shape[0] == 0 or not math.isfinite(float(s)):
+            continue
+        ca = float(np.median(np.abs(pa.contrast)))
+        k = float(np.median(np.abs(pf.contrast))) / max(ca, 1e-9)
+        if k > 1.0:
+            z = float(ndtri(1.0 / k))
+            worst = max(worst, float(s) * k * math.exp(-0.5 * z * z) / math.sqrt(2 * math.pi))
+    return math.sqrt(2.0) * worst
+
+
+def _clipped_share(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]]) -> float:
+    """The largest share, over the sides, of crossings with a pixel within 4 px of the
+    edge (the area method's window) at the sensor's full scale or at zero (frames are in
+    8-bit DN of full scale, see :func:`alignd.vision.edges.as_gray`; a float frame above
+    255 counts as unclipped)."""
+    h, w = gray.shape
+    j = np.arange(-4, 5)
+    worst = 0.0
+    for _ln, pts in sides:
+        if pts.xy.shape[0] == 0:
+            continue
+        t, c = (pts.xy[:, 1], pts.xy[:, 0]) if pts.vertical else (pts.xy[:, 0], pts.xy[:, 1])
+        t = np.clip(np.rint(t).astype(np.intp), 0, (h if pts.vertical else w) - 1)
+        c = np.clip(np.rint(c).astype(np.intp)[:, None] + j, 0, (w if pts.vertical else h) - 1)
+        v = gray[t[:, None], c] if pts.vertical else gray[c, t[:, None]]
+        if float(v.max()) > 255.0 + 1e-3:
+            return 0.0
+        worst = max(worst, float(np.mean(np.any((v >= 254.5) | (v <= 0.5), axis=1))))
+    return worst
 
 
 def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
