@@ -28,10 +28,15 @@ def _rect(ctr: np.ndarray, u: np.ndarray, v: np.ndarray, lo: float, hi: float,
                      ctr + hi * u + half_s * v, ctr + lo * u + half_s * v])
 
 
-def _scene(label: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _scene(label: bool = False, across: bool = False
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(image, holder corners, holder + band corners): blur 0.7 px, noise 2 DN; the band's
     outer edge is a penumbra (3 px). ``label``: instead of the band, a darker strip inside
-    the holder 12-22 px from that side over half its length (no shadow)."""
+    the holder 12-22 px from that side over half its length (no shadow). ``across``:
+    instead, a shadow's soft edge (3 px) crosses the holder and the disc parallel to that
+    side, 16 px inside it, the side's end in the shadow, and the holder is the light one
+    (corpus scene #947 of the bench's --seed 4900: the levels step twice the same way, as
+    at a band)."""
     w, h = 400, 320
     t = math.radians(_ANGLE)
     u, v = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
@@ -40,11 +45,17 @@ def _scene(label: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     wide = _rect(ctr, u, v, -_L / 2, _L / 2 + _BAND, _S / 2)
     ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
     region = (0, 0, w, h)
-    img = np.full((h, w), _DISC, np.float32)
-    if not label:
+    disc, hold = (_HOLDER, _DISC) if across else (_DISC, _HOLDER)
+    img = np.full((h, w), disc, np.float32)
+    if not (label or across):
         shadow = coverage(Polygon(wide), ras, region).astype(np.float32)
         img += (_SHADOW - img) * cv2.GaussianBlur(shadow, (0, 0), 3.0)
-    img += (_HOLDER - img) * coverage(Polygon(c), ras, region)
+    img += (hold - img) * coverage(Polygon(c), ras, region)
+    if across:
+        beyond = _rect(ctr, u, v, _L / 2 - _BAND, 1000.0, 1000.0)
+        shade = cv2.GaussianBlur(coverage(Polygon(beyond), ras, region).astype(np.float32),
+                                 (0, 0), 3.0)
+        img *= 1.0 - 0.35 * shade
     if label:
         strip = _rect(ctr, u, v, _L / 2 - 22.0, _L / 2 - 12.0, _S / 4)
         img += (40.0 - img) * coverage(Polygon(strip), ras, region)
@@ -87,6 +98,16 @@ def test_without_the_check_the_band_was_taken(monkeypatch: pytest.MonkeyPatch) -
     img, c, wide = _scene()
     det = track_holder(img, expected_size_px=(_L, _S), hint=wide)
     assert det.ok and _corner_error(det.corners_px, c) > 10.0
+
+
+def test_a_shadow_edge_across_the_holder_keeps_the_side() -> None:
+    """The levels alone flag the side (a step the same way 16 px in); the expected size
+    says the side is right, and the holder is returned as measured."""
+    img, c, _wide = _scene(across=True)
+    assert inner_step(img, order_corners(c)) is not None
+    det = track_holder(img, expected_size_px=(_L, _S))
+    assert det.ok, det.reason
+    assert _corner_error(det.corners_px, c) < 0.3
 
 
 def test_a_dark_label_near_a_side_is_not_a_shadow() -> None:

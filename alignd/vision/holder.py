@@ -310,17 +310,27 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
                   min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None,
                   size_tolerance: float, profile: bool) -> HolderDetection:
     """``det``, unless one of its sides is a shadow's outer edge (a second step the same
-    way just inside it, :func:`alignd.vision.holder_steps.inner_step`): then the holder
-    measured again with that side moved in to the inner step, or not ok with the reason.
-    Never a holder a shadow's width too large."""
+    way just inside it, :func:`alignd.vision.holder_steps.inner_step`, that the expected
+    size puts the holder's side at): then the holder measured again with that side moved
+    in to the inner step, or not ok with the reason. Never a holder a shadow's width too
+    large. The levels alone cannot tell a shadow band beyond a side from a shadow's edge
+    across the holder parallel to it (both step twice the same way): the size does, so
+    without an expected size there is no such check."""
+    if expected_size_px is None:
+        return det
     step = inner_step(gray, det.corners_px)
     if step is None:
         return det
     k = step.side
     c = np.asarray(det.corners_px, float)
+    lengths = _side_lengths(c)
+    along, across = float(lengths[k]), float(lengths[(k + 1) % 4] + lengths[k - 1]) / 2
+    want = min(expected_size_px) if along >= across else max(expected_size_px)
+    if abs(across - step.depth_px - want) >= abs(across - want):
+        return det  # the inner step lies across the holder: the side is where it should be
     ctr = c.mean(axis=0)
     a, b = c[k], c[(k + 1) % 4]
-    u = (b - a) / max(float(np.linalg.norm(b - a)), 1e-9)
+    u = (b - a) / max(along, 1e-9)
     n = np.array([-u[1], u[0]])
     if float(np.dot((a + b) / 2 - ctr, n)) > 0:
         n = -n  # inward
@@ -328,7 +338,8 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
     moved[k] += step.depth_px * n
     moved[(k + 1) % 4] += step.depth_px * n
     why = (f"side {k} has a second step the same way {step.depth_px:.0f} px inside it "
-           f"({100 * step.ratio:.0f} % of its own: a shadow's edge taken for the side?)")
+           f"({100 * step.ratio:.0f} % of its own), where the holder's size puts the side "
+           "(a shadow's edge taken for the side?)")
     try:
         again = _refine(gray, order_corners(moved), polarity, expected_size_px, hint,
                         min_contrast, max_rms_px, passes, lens, size_tolerance, profile)

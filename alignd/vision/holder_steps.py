@@ -26,7 +26,7 @@ _FAR_PX = 24.0  # the inner step is looked for this deep (at most 0.35 of the ex
 # the level just inside a side differing from the level deeper inside and from the
 # holder's interior (the median over its middle) the same way as the side's own step, by
 # at least this fraction of that step, flags the side (docs/vision.md: the corpus' values)
-_MIN_RATIO = 0.5
+_MIN_RATIO = 0.3
 _MIN_STEP_DN = 8.0  # and at least this, in grey levels (texture and noise stay below)
 
 
