@@ -1,0 +1,44 @@
+"""bench/vision.py's side pre-check rows: the frame count asked for is the one averaged,
+and the errors are listed by how the views were coded (what limits them differs: noise on
+raw frames, coding error the frames share on JPEG ones; docs/vision.md)."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+_BENCH = Path(__file__).resolve().parents[1] / "bench" / "vision.py"
+
+
+@pytest.fixture(scope="module")
+def bench() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("bench_vision", _BENCH)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["bench_vision"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_side_rows_average_the_frames_asked_for_and_split_by_coding(
+        bench: ModuleType) -> None:
+    from alignd.config import PrecheckConfig
+    assert PrecheckConfig().tilt_frames == bench.TILT_FRAMES
+    # one view per category (seeded): the JPEG one among them
+    rows, summary = bench.corpus_side(5, 2224, frames=3)
+    names = [r[0] for r in rows]
+    assert "ROI x3: total" in names and "auto x3: total" in names
+    assert not any(f"x{bench.TILT_FRAMES}" in n for n in names)
+    bands = [r for r in rows if r[0].startswith("  ")]
+    # under each pre-check total: the raw views and the JPEG one's quality band
+    assert sum(int(r[1]) for r in bands) == 2 * 5
+    assert sum(1 for r in bands if r[0] == "  not JPEG") == 2
+    assert sum(1 for r in bands if r[0].startswith("  JPEG q")) == 2
+    assert summary["ROI_found"] == 1.0 and summary["ROI_wrong"] == 0
+    # three frames of noisy views: well inside a tenth of a degree, not exact
+    assert 0 < summary["ROI_pre_max"] < 0.02 and math.isfinite(summary["ROI_pre_rms"])
