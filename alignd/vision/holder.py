@@ -328,15 +328,8 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
     want = min(expected_size_px) if along >= across else max(expected_size_px)
     if abs(across - step.depth_px - want) >= abs(across - want):
         return det  # the inner step lies across the holder: the side is where it should be
-    ctr = c.mean(axis=0)
-    a, b = c[k], c[(k + 1) % 4]
-    u = (b - a) / max(along, 1e-9)
-    n = np.array([-u[1], u[0]])
-    if float(np.dot((a + b) / 2 - ctr, n)) > 0:
-        n = -n  # inward
     moved = c.copy()
-    moved[k] += step.depth_px * n
-    moved[(k + 1) % 4] += step.depth_px * n
+    moved[[k, (k + 1) % 4]] += step.depth_px * np.asarray(step.inward)
     why = (f"side {k} has a second step the same way {step.depth_px:.0f} px inside it "
            f"({100 * step.ratio:.0f} % of its own), where the holder's size puts the side "
            "(a shadow's edge taken for the side?)")

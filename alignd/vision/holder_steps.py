@@ -38,6 +38,7 @@ class InnerStep:
     side: int
     ratio: float  # the inner step over the side's own step
     depth_px: float  # from the found side inward to the inner step's half-way level
+    inward: tuple[float, float]  # the side's unit normal toward the holder's inside
 
 
 def _sample_points(gray: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -58,21 +59,27 @@ def _interior(gray: np.ndarray, c: np.ndarray) -> float:
     return float(np.median(_sample_points(gray, p)))
 
 
+def _sides(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each side k's vector (corner k to k + 1), its length and its outward unit normal."""
+    nxt = c[[1, 2, 3, 0]]
+    edge = nxt - c
+    length = np.linalg.norm(edge, axis=1)
+    n = np.stack([-edge[:, 1], edge[:, 0]], axis=1) / np.maximum(length, 1e-9)[:, None]
+    n[np.sum(((c + nxt) / 2 - c.mean(axis=0)) * n, axis=1) < 0] *= -1
+    return edge, length, n
+
+
 def side_ratios(gray: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per side of ``corners`` (4, 2, cyclic order): the level just inside it minus the
     level deeper inside (``_FAR_PX``, at most 0.35 of the extent across), and minus the
     holder's interior level, each over the side's own step (0 where of the other sign, or
     under ``_MIN_STEP_DN``, or the holder is too narrow)."""
     c = np.asarray(corners, float)
-    nxt = c[[1, 2, 3, 0]]
-    edge = nxt - c
-    length = np.linalg.norm(edge, axis=1)
+    edge, length, n = _sides(c)
     zero = np.zeros(4)
     if length.min() < 8.0:
         return zero, zero
-    n = np.stack([-edge[:, 1], edge[:, 0]], axis=1) / length[:, None]
-    n[np.sum(((c + nxt) / 2 - c.mean(axis=0)) * n, axis=1) < 0] *= -1  # outward
-    far = np.minimum(_FAR_PX, 0.35 * np.linalg.norm(c[[2, 3, 0, 1]] - nxt, axis=1))
+    far = np.minimum(_FAR_PX, 0.35 * length[[1, 2, 3, 0]])  # the extent across each side
     frac = np.linspace(0.2, 0.8, 16)
     band = np.arange(4.0)
     # depths per side: just inside, outside, and the deep band (from -far, 4 px)
@@ -106,15 +113,11 @@ def inner_step(gray: np.ndarray, corners: np.ndarray) -> InnerStep | None:
     k = int(np.argmax(ratio))
     if ratio[k] < _MIN_RATIO:
         return None
-    a, b = c[k], c[(k + 1) % 4]
-    length = float(np.linalg.norm(b - a))
-    u = (b - a) / length
-    n = np.array([-u[1], u[0]])
-    if float(np.dot((a + b) / 2 - c.mean(axis=0), n)) < 0:
-        n = -n
-    far = min(_FAR_PX, 0.35 * float(np.linalg.norm(c[(k + 2) % 4] - b)))
-    depth = _inner_depth(gray, a, u, n, length, far)
-    return None if depth is None else InnerStep(k, float(ratio[k]), depth)
+    edge, length, n = _sides(c)
+    far = min(_FAR_PX, 0.35 * float(length[(k + 1) % 4]))
+    depth = _inner_depth(gray, c[k], edge[k] / length[k], n[k], float(length[k]), far)
+    return None if depth is None else InnerStep(k, float(ratio[k]), depth,
+                                                (float(-n[k, 0]), float(-n[k, 1])))
 
 
 def _inner_depth(gray: np.ndarray, a: np.ndarray, u: np.ndarray, n: np.ndarray,
