@@ -203,9 +203,10 @@ def _analyze_mean(kind: str, names: list[str], args: argparse.Namespace
     if kind == "side":
         from alignd.vision.side import measure_tilt_frames
         t = measure_tilt_frames(images, pole_roi_px=args.pole_roi, sample_roi_px=args.sample_roi)
-        line = (f"sample {t.to_json()['sample_angle_deg']:+.4f} deg  tilt {t.tilt_deg:+.4f} "
-                f"+- {t.u_deg:.4f} deg")
-        return t.to_json(), line
+        obj = t.to_json()
+        line = (f"sample {obj['sample_angle_deg']:+.4f} deg  pole {obj['pole_angle_deg']:+.4f} "
+                f"deg  tilt {t.tilt_deg:+.4f} +- {t.u_deg:.4f} deg")
+        return obj, line
     from alignd.vision.rim import fit_rim_frames
     f = fit_rim_frames(images, args.radius_mm, args.height_mm)
     line = (f"ellipse centre ({f.center_px[0]:.3f}, {f.center_px[1]:.3f}) px  axes "
