@@ -131,13 +131,17 @@ def _inner_depth(gray: np.ndarray, a: np.ndarray, u: np.ndarray, n: np.ndarray,
     p = a + (frac[:, None, None] * length) * u + depths[None, :, None] * n
     prof = np.median(_sample_points(gray, p), axis=0)
     half = 0.5 * (float(prof[:3].mean()) + float(prof[-3:].mean()))
-    past = np.nonzero((prof - half) * np.sign(prof[0] - half) <= 0)[0]
-    if not past.size:
-        return None
+    toward = np.sign(prof[0] - half)  # the profile's way from just inside to deep inside
+
+    def first_past(level: float) -> int | None:
+        i = np.nonzero((prof - level) * toward <= 0)[0]
+        return int(i[0]) if i.size else None
+
+    past = first_past(half)
     # a step: the profile crosses half-way within a few px (a blurred edge), not by a
     # slow change over the whole depth (a soft shadow, the light's gradient)
-    lo = np.nonzero((prof - (0.75 * prof[0] + 0.25 * prof[-1])) * np.sign(prof[0] - half) <= 0)[0]
-    hi = np.nonzero((prof - (0.25 * prof[0] + 0.75 * prof[-1])) * np.sign(prof[0] - half) <= 0)[0]
-    if not lo.size or not hi.size or hi[0] - lo[0] > 8:
+    lo = first_past(0.75 * float(prof[0]) + 0.25 * float(prof[-1]))
+    hi = first_past(0.25 * float(prof[0]) + 0.75 * float(prof[-1]))
+    if past is None or lo is None or hi is None or hi - lo > 8:
         return None
-    return float(-depths[past[0]])
+    return float(-depths[past])
