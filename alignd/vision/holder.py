@@ -76,6 +76,10 @@ _CLIP_SHARE = 0.2
 _CLIP_AGREE_PX = 0.3
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
+_WIDE = 9
+# the area method's windows stop this far (px along a side) short of the corners, where the
+# neighbouring side's transition would enter them (in the wide windows, further)
+_MARGIN, _WIDE_MARGIN = 10.0, 12.0
 
 
 @dataclass(frozen=True)
@@ -179,12 +183,15 @@ def _ideal(pts: EdgePoints, lens: Lens | None) -> EdgePoints:
 
 
 def _profile_sides(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
-                   half_width: int, lens: Lens | None = None, blur: np.ndarray | None = None
+                   half_width: int, margin: float, lens: Lens | None = None,
+                   blur: np.ndarray | None = None
                    ) -> tuple[list[tuple[Line | None, EdgePoints]], np.ndarray]:
-    """The area method's crossings refined by the profile fit, their lines and each
-    side's blur (``blur``: known widths, see :func:`fit_crossings_blur`)."""
+    """The area method's crossings (``margin`` px short of the corners) refined by the
+    profile fit, which reaches nearer the corners, their lines and each side's blur
+    (``blur``: known widths, see :func:`fit_crossings_blur`)."""
     fine, widths = fit_crossings_blur(gray, [pts for _ln, pts in sides],
-                                      half_width=half_width, blur=blur)
+                                      half_width=half_width, blur=blur,
+                                      corner_gap_px=margin)
     return [(fit_line(_ideal(f, lens)), f) for f in fine], widths
 
 
@@ -356,7 +363,7 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
     # (a distorted side is curved in the frame: windows along the straight segment between
     # its corners would miss its middle, so with a lens the coarse search always runs)
     straight = lens is None or lens.k1 == 0.0
-    sides = _fit_sides(gray, corners, _HALF_WIDTH, 10.0, min_contrast, lens) \
+    sides = _fit_sides(gray, corners, _HALF_WIDTH, _MARGIN, min_contrast, lens) \
         if seeded and straight and passes <= 1 else None
     blur = None
     if sides is None or not _seed_holds(sides, corners, max_rms_px, lens):
@@ -419,7 +426,7 @@ def _locate(gray: np.ndarray, corners: np.ndarray, min_contrast: float, passes: 
                 corners[2] - corners[0]):
             break  # a line went astray: keep the previous corners and flag below
         corners = new
-        sides = _fit_sides(gray, corners, _HALF_WIDTH, 10.0, min_contrast, lens)
+        sides = _fit_sides(gray, corners, _HALF_WIDTH, _MARGIN, min_contrast, lens)
         lines = [s[0] for s in sides]
         lines_ideal = True
     return corners, sides
@@ -437,21 +444,21 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
     # its residual correlations are left out here and measured only when it is
     det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
                     size_tolerance, inflate=not profile)
-    hw, used = _HALF_WIDTH, sides
+    hw, used, margin = _HALF_WIDTH, sides, _MARGIN
     if not det.ok and "rms" in det.reason:
         # a soft (defocused) edge overflows the +-5 px window: measure it in +-9 px
-        wide = _fit_sides(gray, corners, 9, 12.0, min_contrast, lens)
+        wide = _fit_sides(gray, corners, _WIDE, _WIDE_MARGIN, min_contrast, lens)
         det2 = _assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
                          size_tolerance, inflate=not profile)
         if det2.ok:
             det = det2
-            hw, used = 9, wide
+            hw, used, margin = _WIDE, wide, _WIDE_MARGIN
     if profile and not det.ok:
         det = _assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
                         size_tolerance)
     elif profile:
         # the sides it passed, refined by the profile fit: kept when they pass as well
-        fine, widths = _profile_sides(gray, used, hw, lens, blur)
+        fine, widths = _profile_sides(gray, used, hw, margin, lens, blur)
         det3 = _assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
                          size_tolerance)
         # two estimates of the same corners must agree within the area method's
@@ -468,7 +475,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             # a soft side's transition overflows the area method's +-5 px, which then
             # errs by 0.1-0.3 px itself (its tails inside the blur): a second opinion in
             # +-9 px may confirm the refined corners (the +-5 px ones stay the fallback)
-            wide = _fit_sides(gray, corners, 9, 12.0, min_contrast, lens)
+            wide = _fit_sides(gray, corners, _WIDE, _WIDE_MARGIN, min_contrast, lens)
             det9 = _assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
                              size_tolerance, inflate=False)
             if det9.ok:

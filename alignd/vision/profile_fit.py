@@ -489,6 +489,73 @@ def _censored(clipped: tuple[np.ndarray, np.ndarray], r: np.ndarray) -> np.ndarr
     return (~((hi & (r <= 0.0)) | (lo & (r >= 0.0)))).astype(np.float64)
 
 
+_MIN_GAP = 4.0  # px along an edge from its corner: the closest any position window reaches
+
+
+def _corner_clearance(blur: np.ndarray, slope: np.ndarray, nu: np.ndarray, hw: int
+                      ) -> np.ndarray:
+    """Each edge's distance (px along it) from its corner beyond which its position window
+    (+-hw px across, minor axis) stays clear of the neighbouring side's transition: 2.5
+    blur widths and a pixel from the nearest window pixel, which a tilted edge's window
+    brings hw |sin| nearer the neighbour (a perpendicular side). At 2.5 widths the
+    neighbour's blurred step has 0.6 % of its height left."""
+    return np.maximum(_MIN_GAP, 2.5 * blur + 1.0 + hw * np.abs(slope) * nu)
+
+
+def _extended(e: EdgePoints, by_px: float, shape: tuple[int, ...]) -> EdgePoints:
+    """``e`` with columns (rows) added at each end out to ``by_px`` further along the edge,
+    their crossings extrapolated from the line through the end's 16 nearest (the profile
+    fit starts there and corrects it), as many at each end."""
+    t, c = (e.xy[:, 1], e.xy[:, 0]) if e.vertical else (e.xy[:, 0], e.xy[:, 1])
+    order = np.argsort(t)
+    t, c, con = t[order], c[order], e.contrast[order]
+    slope = float(np.polyfit(t, c, 1)[0])
+    k = int(by_px / math.hypot(1.0, slope))  # columns per end
+    limit = shape[0] if e.vertical else shape[1]
+    k = min(k, int(t[0]), int(limit - 1 - t[-1]))  # (as many at each end, in the frame)
+    if k < 1:
+        return e
+    head = np.polyfit(t[:16], c[:16], 1)
+    tail = np.polyfit(t[-16:], c[-16:], 1)
+    th = t[0] - np.arange(k, 0, -1)
+    tt = t[-1] + np.arange(1, k + 1)
+    t2 = np.concatenate([th, t, tt])
+    c2 = np.concatenate([np.polyval(head, th), c, np.polyval(tail, tt)])
+    con2 = np.concatenate([np.full(k, np.median(con[:16])), con, np.full(k, np.median(con[-16:]))])
+    xy = xy_columns(c2, t2) if e.vertical else xy_columns(t2, c2)
+    return EdgePoints(xy, con2, e.vertical)
+
+
+_END_FIT = 24  # given crossings nearest an end whose line an extended end must follow
+
+
+def _ends_follow(t: np.ndarray, q: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """The crossings to keep of an edge extended beyond its given ones (``lo`` .. ``hi``):
+    all, except an end whose added crossings stray as a group from the line through the
+    nearest given ones (by more than 3 standard errors): something other than the
+    side's own straight edge near its corner (a rounded corner, a cast shadow's corner,
+    a screw) that a single column's misfit does not show."""
+    keep = np.ones(t.size, bool)
+    inner = np.flatnonzero((t >= lo) & (t <= hi))
+    if inner.size < _END_FIT:
+        return (t >= lo) & (t <= hi)
+    for added, near in ((t < lo, inner[:_END_FIT]), (t > hi, inner[-_END_FIT:])):
+        n = int(added.sum())
+        if n == 0:
+            continue
+        tn = t[near] - t[near].mean()
+        slope = float(tn @ q[near]) / float(tn @ tn)
+        resid = q[near] - q[near].mean() - slope * tn
+        sigma2 = float(resid @ resid) / (near.size - 2)
+        ta = t[added] - t[near].mean()
+        off = float(np.mean(q[added] - q[near].mean() - slope * ta))
+        # the mean of the added crossings' residuals and the line's error at their mean
+        se2 = sigma2 * (1.0 / n + 1.0 / near.size + float(ta.mean()) ** 2 / float(tn @ tn))
+        if abs(off) > 3.0 * math.sqrt(se2) + 0.02:
+            keep &= ~added
+    return keep
+
+
 def _rows(gray: np.ndarray, edges: list[EdgePoints], use: list[int]) -> _Rows:
     h, w = gray.shape
     parts = []
@@ -526,7 +593,8 @@ def fit_crossings(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int 
 
 def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int = 5,
                        iterations: int = 2, max_half_width: int = 10,
-                       blur: np.ndarray | None = None) -> tuple[list[EdgePoints], np.ndarray]:
+                       blur: np.ndarray | None = None, corner_gap_px: float | None = None
+                       ) -> tuple[list[EdgePoints], np.ndarray]:
     """Refine the area-method crossings of straight edges (one EdgePoints each) by the
     profile fit, all edges in one batch (every step is a few array operations for all the
     columns of all the edges together: the cost is that of the arithmetic, not of the
@@ -543,10 +611,21 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     left the window's middle are dropped. The refined crossings' ``contrast`` is the fitted
     step's height (the area method's, read from the window's tails, is the clip's where the
     edge's pixels are clipped).
+
+    ``corner_gap_px``: the given crossings stop this far (along the edge) short of its
+    ends, the corners, where a neighbouring side's transition would enter an area
+    window. The positions then reach further, as close to the corners as the edge's own
+    blur and slope let the position window stay clear of the neighbour
+    (:func:`_corner_clearance`; the end columns are the corners' lever).
     """
     empty = [EdgePoints(np.empty((0, 2)), np.empty(0), e.vertical) for e in edges]
+    given_n = [e.xy.shape[0] for e in edges]
+    extend = corner_gap_px is not None and corner_gap_px > _MIN_GAP
+    if extend:
+        edges = [_extended(e, float(corner_gap_px or 0.0) - _MIN_GAP, gray.shape)
+                 if e.xy.shape[0] >= 8 else e for e in edges]
     widths = np.full(len(edges), np.nan)
-    use = [i for i, e in enumerate(edges) if e.xy.shape[0] >= 8]
+    use = [i for i, e in enumerate(edges) if given_n[i] >= 8]
     if not use:
         return empty, widths
     ne = len(use)
@@ -559,16 +638,23 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     n_all = np.bincount(rows.edge, minlength=ne)  # >= 8 each
     lo = np.minimum.reduceat(rows.t, np.cumsum(n_all) - n_all)
     hi = np.maximum.reduceat(rows.t, np.cumsum(n_all) - n_all)
+    ext = np.zeros(ne)  # major px each end was extended by (corner_gap_px)
+    if extend:
+        added = np.array([(edges[i].xy.shape[0] - given_n[i]) // 2 for i in use])
+        ext = added.astype(float)
+        lo, hi = lo + added, hi - added
 
-    def window(hw: int, trim_ends: bool = True
+    def window(hw: int, trim_ends: bool = True, reach: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, _Rows, np.ndarray, np.ndarray]:
-        """Every row's window of +-hw px and the tails' slopes; a window wider than
-        ``half_width`` reaches further toward the corners: with ``trim_ends`` the ends are
-        trimmed as much."""
-        r0 = rows
+        """Every row's window of +-hw px and the tails' slopes, over the given crossings
+        (``reach``: and that many major px beyond each end of an extended edge); a window
+        wider than ``half_width`` reaches further toward the corners: with ``trim_ends``
+        the ends are trimmed as much."""
+        trim = np.zeros(ne) if reach is None else -reach
         if hw > half_width and trim_ends:
-            trim = ((hw - half_width) * (1.0 + np.abs(slope)))[rows.edge]
-            r0 = rows.take((rows.t >= lo[rows.edge] + trim) & (rows.t <= hi[rows.edge] - trim))
+            trim = trim + (hw - half_width) * (1.0 + np.abs(slope))
+        r0 = rows.take((rows.t >= lo[rows.edge] + trim[rows.edge])
+                       & (rows.t <= hi[rows.edge] - trim[rows.edge]))
         P, centre, ok = _windows(flat, r0, hw)
         r1 = r0.take(ok)
         b1, b2 = _tail_slopes(P, r1.edge, ne)
@@ -617,8 +703,13 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     # transition stays out of the end columns' windows or they misfit and are dropped,
     # and the end columns are the corners' lever; trimmed as the blur window is, the
     # corpus corners were worse: uncompressed 0.0427 -> 0.0444 px, optics 0.058 -> 0.062)
-    if hw != built or hw > half_width:
-        P, centre, r1, b1, b2 = window(hw, trim_ends=False)
+    # an extended edge: as close to its corners as its clearance lets the window reach
+    reach = None
+    if np.any(ext > 0):
+        gap = _corner_clearance(blur_e, slope, nu, hw)
+        reach = np.clip((float(corner_gap_px or 0.0) - gap) * nu, 0.0, ext)
+    if hw != built or hw > half_width or reach is not None:
+        P, centre, r1, b1, b2 = window(hw, trim_ends=False, reach=reach)
     if r1.edge.size == 0:
         return empty, widths
     x = np.arange(-hw, hw + 1, dtype=float)
@@ -660,6 +751,9 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     for k, sel in enumerate(edge_rows(good, r1.edge, ne)):
         i = use[k]
         t, q = r1.t[sel].astype(float), p[sel]
+        if ext[k] > 0:
+            keep = _ends_follow(t, q, float(lo[k]), float(hi[k]))
+            t, q, sel = t[keep], q[keep], sel[keep]
         vertical = edges[i].vertical
         xy = xy_columns(q, t) if vertical else xy_columns(t, q)
         out[i] = EdgePoints(xy, D[sel], vertical)
