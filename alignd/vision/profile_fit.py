@@ -663,8 +663,10 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
         trim = np.zeros(ne) if reach is None else -reach
         if hw > half_width and trim_ends:
             trim = trim + (hw - half_width) * (1.0 + np.abs(slope))
-        r0 = rows.take((rows.t >= lo[rows.edge] + trim[rows.edge])
-                       & (rows.t <= hi[rows.edge] - trim[rows.edge]))
+        # (an extended edge's added columns are left out unless ``reach`` takes them in)
+        r0 = rows if not (extend or np.any(trim)) else rows.take(
+            (rows.t >= lo[rows.edge] + trim[rows.edge])
+            & (rows.t <= hi[rows.edge] - trim[rows.edge]))
         P, centre, ok = _windows(flat, r0, hw)
         r1 = r0.take(ok)
         b1, b2 = _tail_slopes(P, r1.edge, ne)
