@@ -554,9 +554,9 @@ def _ends_follow(t: np.ndarray, q: np.ndarray, lo: float, hi: float) -> np.ndarr
         if ta.size == 0:
             continue
         a, b, tm = _line_through(t[near], q[near])
-        resid = q[near] - a - b * (t[near] - tm)
-        sigma2 = float(resid @ resid) / (_END_FIT - 2)
         tn = t[near] - tm
+        resid = q[near] - a - b * tn
+        sigma2 = float(resid @ resid) / (_END_FIT - 2)
         off = float(np.mean(q[added] - a - b * (ta - tm)))
         # the mean of the added crossings' residuals and the line's error at their mean
         dt = float(ta.mean()) - tm
@@ -630,10 +630,11 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     """
     empty = [EdgePoints(np.empty((0, 2)), np.empty(0), e.vertical) for e in edges]
     given_n = [e.xy.shape[0] for e in edges]
-    extend = corner_gap_px is not None and corner_gap_px > _MIN_GAP
+    gap_px = 0.0 if corner_gap_px is None else float(corner_gap_px)
+    extend = gap_px > _MIN_GAP
     if extend:
-        edges = [_extended(e, float(corner_gap_px or 0.0) - _MIN_GAP, gray.shape)
-                 if e.xy.shape[0] >= 8 else e for e in edges]
+        edges = [_extended(e, gap_px - _MIN_GAP, gray.shape) if e.xy.shape[0] >= 8 else e
+                 for e in edges]
     widths = np.full(len(edges), np.nan)
     use = [i for i, e in enumerate(edges) if given_n[i] >= 8]
     if not use:
@@ -648,10 +649,9 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     n_all = np.bincount(rows.edge, minlength=ne)  # >= 8 each
     lo = np.minimum.reduceat(rows.t, np.cumsum(n_all) - n_all)
     hi = np.maximum.reduceat(rows.t, np.cumsum(n_all) - n_all)
-    ext = np.zeros(ne)  # major px each end was extended by (corner_gap_px)
+    added = np.zeros(ne, np.intp)  # columns (major px) added at each end (corner_gap_px)
     if extend:
         added = np.array([(edges[i].xy.shape[0] - given_n[i]) // 2 for i in use])
-        ext = added.astype(float)
         lo, hi = lo + added, hi - added
 
     def window(hw: int, trim_ends: bool = True, reach: np.ndarray | None = None
@@ -717,9 +717,8 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     # corpus corners were worse: uncompressed 0.0427 -> 0.0444 px, optics 0.058 -> 0.062)
     # an extended edge: as close to its corners as its clearance lets the window reach
     reach = None
-    if np.any(ext > 0):
-        gap = _corner_clearance(blur_e, slope, nu, hw)
-        reach = np.clip((float(corner_gap_px or 0.0) - gap) * nu, 0.0, ext)
+    if np.any(added > 0):
+        reach = np.clip((gap_px - _corner_clearance(blur_e, slope, nu, hw)) * nu, 0.0, added)
     if hw != built or hw > half_width or reach is not None:
         P, centre, r1, b1, b2 = window(hw, trim_ends=False, reach=reach)
     if r1.edge.size == 0:
@@ -763,7 +762,7 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
     for k, sel in enumerate(edge_rows(good, r1.edge, ne)):
         i = use[k]
         t, q = r1.t[sel].astype(float), p[sel]
-        if ext[k] > 0:
+        if added[k] > 0:
             keep = _ends_follow(t, q, float(lo[k]), float(hi[k]))
             t, q, sel = t[keep], q[keep], sel[keep]
         vertical = edges[i].vertical
