@@ -32,6 +32,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import argparse  # noqa: E402
+import itertools  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -324,21 +325,28 @@ def corpus_top(n: int, seed: int) -> tuple[list[Row], dict[str, float]]:
 
 
 TILT_FRAMES = PrecheckConfig().tilt_frames  # the pre-check's default frame count
+TILT_U_TARGET = PrecheckConfig().tilt_u_target_deg  # ... and its frame taking by uncertainty
+TILT_MAX_FRAMES = PrecheckConfig().tilt_max_frames
 
 
-def corpus_side(n: int, seed: int, frames: int = TILT_FRAMES
+def corpus_side(n: int, seed: int, frames: int = TILT_FRAMES,
+                u_target: float | None = TILT_U_TARGET, max_frames: int = TILT_MAX_FRAMES
                 ) -> tuple[list[Row], dict[str, float]]:
     """n randomised side views, with the config's regions and without. Each view comes as
-    ``frames`` frames with their own noise (and coding), as a camera streams them; the
-    per-frame rows score the first frame alone (:func:`measure_tilt`), the pre-check rows
-    the mean of all of them as the alignment's pre-check measures it
-    (:func:`measure_tilt_frames`, ``procedure.precheck.tilt_frames``). |error| / u is the
-    error over the reported standard uncertainty (an honest u gives an RMS near 1)."""
+    ``frames`` frames with their own noise (and coding), as a camera streams them, and
+    more on demand; the per-frame rows score the first frame alone (:func:`measure_tilt`),
+    the pre-check rows the mean the alignment's pre-check measures
+    (:func:`measure_tilt_frames`, ``procedure.precheck``: ``tilt_frames`` frames, more
+    while the uncertainty is above ``u_target``, up to ``max_frames``; None: no more).
+    |error| / u is the error over the reported standard uncertainty (an honest u gives an
+    RMS near 1)."""
+    tag = f"x{frames}" + ("+" if u_target is not None else "")
     rng = np.random.default_rng(seed)
     per: dict[tuple[str, str], dict[str, list[float]]] = {}
     # the pre-check's errors by how the views were coded (what limits them differs)
     coded: dict[tuple[str, str], list[float]] = {}
     times: dict[str, list[float]] = {"ROI": [], "auto": []}
+    taken: dict[str, list[int]] = {"ROI": [], "auto": []}
     for i in range(n):
         cat = SIDE_CATEGORIES[i % len(SIDE_CATEGORIES)]
         sc = random_side_scene(rng, cat, frames=frames)
@@ -348,19 +356,24 @@ def corpus_side(n: int, seed: int, frames: int = TILT_FRAMES
         for mode in ("ROI", "auto"):
             d1 = per.setdefault((mode, cat), {"n": [], "found": [], "wrong": [], "err": [],
                                               "z": []})
-            dn = per.setdefault((f"{mode} x{frames}", cat),
+            dn = per.setdefault((f"{mode} {tag}", cat),
                                 {"n": [], "found": [], "wrong": [], "err": [], "z": []})
             d1["n"].append(1)
             dn["n"].append(1)
             rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px} \
                 if mode == "ROI" else {}
             t0 = time.process_time()
+            count = itertools.count()
+            more = None if sc.further is None else (
+                lambda k, f=sc.further, c=count: [f(next(c)) for _ in range(k)])
             try:
-                av = measure_tilt_frames(list(sc.frames), **rois)
+                av = measure_tilt_frames(list(sc.frames), **rois, more=more,
+                                         u_target_deg=u_target, max_frames=max_frames)
             except VisionError as exc:
                 log_line(f"side #{i} ({cat}, {mode}): {str(exc)[:110]}")
                 continue
-            times[mode].append((time.process_time() - t0) / frames)
+            times[mode].append(time.process_time() - t0)
+            taken[mode].append(av.n)
             m = av.frames[0]
             wrong = [x for x in (e.x_mid_px for f in av.frames for e in f.sample_edges[:1])
                      if min(abs(x - v) for v in sc.sample_x_px) >= 4.0]
@@ -377,7 +390,7 @@ def corpus_side(n: int, seed: int, frames: int = TILT_FRAMES
             coded.setdefault((mode, band), []).append(av.tilt_deg - sc.tilt_deg)
     rows: list[Row] = []
     summary: dict[str, float] = {}
-    for mode in ("ROI", f"ROI x{frames}", "auto", f"auto x{frames}"):
+    for mode in ("ROI", f"ROI {tag}", "auto", f"auto {tag}"):
         tn = tf = tw = 0
         errs: list[float] = []
         zs: list[float] = []
@@ -394,18 +407,21 @@ def corpus_side(n: int, seed: int, frames: int = TILT_FRAMES
         rows.append((f"{mode}: total", str(tn), f"{100 * tf / max(tn, 1):.1f}", str(tw),
                      _f(_rms(errs), 5), _f(max(map(abs, errs), default=math.nan), 5),
                      _f(_rms(zs), 2)))
-        if mode.endswith(f" x{frames}"):
+        if mode.endswith(f" {tag}"):
             for (md, band), e in sorted(coded.items()):
-                if f"{md} x{frames}" == mode:
+                if f"{md} {tag}" == mode:
                     rows.append((f"  {band}", str(len(e)), "", "", _f(_rms(e), 5),
                                  _f(max(map(abs, e)), 5), ""))
-        key = mode.replace(f" x{frames}", "_pre")
+        key = mode.replace(f" {tag}", "_pre")
         summary[f"{key}_found"] = tf / max(tn, 1)
         summary[f"{key}_wrong"] = tw
         summary[f"{key}_max"] = max(map(abs, errs), default=math.nan)
         summary[f"{key}_rms"] = _rms(errs)
     for mode, t in times.items():
-        summary[f"{mode}_ms"] = 1e3 * float(np.mean(t)) if t else math.nan
+        summary[f"{mode}_s"] = float(np.mean(t)) if t else math.nan
+        summary[f"{mode}_frames"] = float(np.mean(taken[mode])) if t else math.nan
+        summary[f"{mode}_frames_max"] = float(max(taken[mode], default=0))
+        summary[f"{mode}_more"] = float(sum(k > frames for k in taken[mode]))
     return rows, summary
 
 
@@ -559,31 +575,43 @@ def top_targets(ts: dict[str, float]) -> list[Target]:
     ]
 
 
-def print_side(c_side: int, seed: int, frames: int = TILT_FRAMES) -> dict[str, float]:
-    s_rows, ss = corpus_side(c_side, seed, frames)
+def print_side(c_side: int, seed: int, frames: int = TILT_FRAMES,
+               u_target: float | None = TILT_U_TARGET, max_frames: int = TILT_MAX_FRAMES
+               ) -> dict[str, float]:
+    s_rows, ss = corpus_side(c_side, seed, frames, u_target, max_frames)
+    pre = (f"'x{frames}+': the pre-check, the mean of {frames} frames of the view with their "
+           f"own noise, more while u > {u_target:g} deg (up to {max_frames})"
+           if u_target is not None else
+           f"'x{frames}': the pre-check, the mean of {frames} frames of the view with their "
+           "own noise")
     print(f"\nrandomised side scenes (tilt; {c_side} views, each with and without regions; "
-          f"'ROI'/'auto': one frame; 'x{frames}': the pre-check, the mean of "
-          f"{frames} frames of the view with their own noise)")
+          f"'ROI'/'auto': one frame; {pre})")
     print_table(("mode: category", "n", "found %", "wrong edge", "tilt RMS deg",
                  "max deg", "RMS err/u"), s_rows)
     return ss
 
 
-def side_targets(ss: dict[str, float], frames: int = TILT_FRAMES) -> list[Target]:
+def side_targets(ss: dict[str, float], frames: int = TILT_FRAMES,
+                 u_target: float | None = TILT_U_TARGET) -> list[Target]:
+    pre = f"{frames}+ frames" if u_target is not None else f"{frames} frames"
     return [
         ("side with regions: found (%)", f"{100 * ss['ROI_found']:.2f}", ">= 99.5",
          ss["ROI_found"] >= 0.995),
-        (f"side with regions: tilt max error, pre-check ({frames} frames) (deg)",
+        (f"side with regions: tilt max error, pre-check ({pre}) (deg)",
          _f(ss["ROI_pre_max"], 5), "<= 0.002", ss["ROI_pre_max"] <= 0.002),
         ("side with regions: tilt max error, one frame (deg)", _f(ss["ROI_max"], 5),
          "(info)", None),
         ("side automatic: found (%)", f"{100 * ss['auto_found']:.2f}", ">= 97",
          ss["auto_found"] >= 0.97),
         ("side automatic: wrong edge", f"{ss['auto_wrong']:.0f}", "0", ss["auto_wrong"] == 0),
-        (f"side automatic: tilt max error, pre-check ({frames} frames) (deg)",
+        (f"side automatic: tilt max error, pre-check ({pre}) (deg)",
          _f(ss["auto_pre_max"], 5), "(info)", None),
-        ("side: time per frame, ROI / auto, pre-check (ms, 1 core)",
-         f"{ss['ROI_ms']:.0f} / {ss['auto_ms']:.0f}", "(info)", None),
+        ("side: pre-check frames, ROI / auto: mean, most (views with more)",
+         f"{ss['ROI_frames']:.1f}, {ss['ROI_frames_max']:.0f} ({ss['ROI_more']:.0f}) / "
+         f"{ss['auto_frames']:.1f}, {ss['auto_frames_max']:.0f} ({ss['auto_more']:.0f})",
+         "(info)", None),
+        ("side: pre-check time, ROI / auto (s, 1 core, mean)",
+         f"{ss['ROI_s']:.2f} / {ss['auto_s']:.2f}", "(info)", None),
     ]
 
 
@@ -673,8 +701,14 @@ def main(argv: list[str] | None = None) -> int:
                          "procedure.precheck.rim_turn_deg does; default 0: a still view, "
                          "the pre-check's default")
     ap.add_argument("--tilt-frames", type=int, default=TILT_FRAMES,
-                    help="side frames the pre-check rows average (default "
+                    help="side frames the pre-check rows start from (default "
                          f"{TILT_FRAMES}, procedure.precheck.tilt_frames' default)")
+    ap.add_argument("--tilt-u-target", type=float, default=TILT_U_TARGET,
+                    help="the pre-check takes more side frames while the tilt's u is above "
+                         f"this (deg; default {TILT_U_TARGET}, procedure.precheck."
+                         "tilt_u_target_deg's default; 0: never more)")
+    ap.add_argument("--tilt-max-frames", type=int, default=TILT_MAX_FRAMES,
+                    help=f"... up to this many (default {TILT_MAX_FRAMES})")
     args = ap.parse_args(argv)
     want = {args.only} if args.only else {"top", "side", "rim"}
     n_top = 4 if args.quick else 40
@@ -701,8 +735,10 @@ def main(argv: list[str] | None = None) -> int:
     if "top" in want:
         targets += top_targets(print_top(c_top, args.seed + 100))
     if "side" in want:
-        targets += side_targets(print_side(c_side, args.seed + 200, args.tilt_frames),
-                                args.tilt_frames)
+        u_target = args.tilt_u_target or None
+        targets += side_targets(print_side(c_side, args.seed + 200, args.tilt_frames,
+                                           u_target, args.tilt_max_frames),
+                                args.tilt_frames, u_target)
     if "rim" in want:
         targets += rim_targets(print_rim(c_rim, args.seed + 300, args.rim_turn_deg),
                                args.rim_turn_deg)

@@ -12,6 +12,8 @@ from types import ModuleType
 
 import pytest
 
+from alignd.config import PrecheckConfig
+
 _BENCH = Path(__file__).resolve().parents[1] / "bench" / "vision.py"
 
 
@@ -27,10 +29,9 @@ def bench() -> ModuleType:
 
 def test_side_rows_average_the_frames_asked_for_and_split_by_coding(
         bench: ModuleType) -> None:
-    from alignd.config import PrecheckConfig
     assert PrecheckConfig().tilt_frames == bench.TILT_FRAMES
     # one view per category (seeded): the JPEG one among them
-    rows, summary = bench.corpus_side(5, 2224, frames=3)
+    rows, summary = bench.corpus_side(5, 2224, frames=3, u_target=None)
     names = [r[0] for r in rows]
     assert "ROI x3: total" in names and "auto x3: total" in names
     assert not any(f"x{bench.TILT_FRAMES}" in n for n in names)
@@ -42,3 +43,19 @@ def test_side_rows_average_the_frames_asked_for_and_split_by_coding(
     assert summary["ROI_found"] == 1.0 and summary["ROI_wrong"] == 0
     # three frames of noisy views: well inside a tenth of a degree, not exact
     assert 0 < summary["ROI_pre_max"] < 0.02 and math.isfinite(summary["ROI_pre_rms"])
+    assert summary["ROI_frames"] == 3 and summary["ROI_more"] == 0
+
+
+def test_side_rows_take_frames_as_the_pre_check_does(bench: ModuleType) -> None:
+    """With a target uncertainty the pre-check rows take more frames as the pre-check
+    would, up to the most allowed (a target no view reaches: every view doubles once),
+    and the table says so in its labels and its frames row."""
+    assert PrecheckConfig().tilt_u_target_deg == bench.TILT_U_TARGET
+    rows, summary = bench.corpus_side(2, 2224, frames=3, u_target=1e-6, max_frames=6)
+    names = [r[0] for r in rows]
+    assert "ROI x3+: total" in names and "auto x3+: total" in names
+    for mode in ("ROI", "auto"):
+        assert summary[f"{mode}_frames"] == 6 and summary[f"{mode}_more"] == 2
+    frames_row = [t for t in bench.side_targets(summary, 3, 1e-6)
+                  if t[0].startswith("side: pre-check frames")]
+    assert frames_row and frames_row[0][1] == "6.0, 6 (2) / 6.0, 6 (2)"

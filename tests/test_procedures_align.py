@@ -508,3 +508,33 @@ def test_rim_turn_angles_stay_inside_the_soft_limits_or_refuse() -> None:
     res = run_check(rig, cfg, tools=standin_tools(4))
     assert res.exit_code == 2 and "rim_turn_deg" in res.reason
     assert commanded(rig, "turntable") == []
+
+
+def test_tilt_precheck_grabs_fresh_side_frames_when_the_tool_asks_for_more() -> None:
+    """The pre-check hands the tilt tool a way to take more side frames (its frame taking
+    by uncertainty, ``precheck.tilt_u_target_deg``): each one exposed after the last, and
+    the run's event says how many frames the tilt came from and why it stopped."""
+    from dataclasses import replace
+
+    from alignd.procedures.tools import MoreFrames, TiltReading
+
+    cfg = sim_config()
+    rig, world = scene_rig(cfg, 4)
+    seqs: list[int] = []
+
+    def tilt_frames(frames: list[Any], more: MoreFrames | None) -> TiltReading:
+        assert more is not None
+        got = [*frames, *more(len(frames))]
+        seqs.extend(f.seq for f in got)
+        t = [float(f.metadata["tilt_deg"]) for f in got]
+        return TiltReading(float(np.mean(t)), 0.0001, len(got), "u 0.0001 <= 0.0006 deg")
+
+    rec = MemoryRecorder()
+    res = run_check(rig, cfg, tools=replace(standin_tools(4), tilt_frames=tilt_frames),
+                    recorder=rec)
+    n = 2 * cfg.procedure.precheck.tilt_frames
+    assert len(seqs) == n and seqs == sorted(set(seqs))  # fresh frames, none twice
+    assert res.tilt_deg == pytest.approx(world.cfg.tilt_deg, abs=1e-6)
+    said = [e for e in rec.events if "pre-check: sample tilt" in e]
+    assert said and f"mean of {n} side frame(s)" in said[0]
+    assert "u 0.0001 <= 0.0006 deg" in said[0]

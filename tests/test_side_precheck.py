@@ -3,7 +3,9 @@ randomised side scenes' truth (seeded; see bench/vision.py for the corpus number
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -14,7 +16,7 @@ from alignd.errors import VisionError
 from alignd.vision.edge_profile import fit_vertical_edge
 from alignd.vision.jpeg_bias import edge_angle_bias, jpeg_quality
 from alignd.vision.side import measure_tilt, measure_tilt_frames
-from drivers.sim.scenes import random_side_scene
+from drivers.sim.scenes import SideSceneSample, random_side_scene
 
 
 def _saturated_edge(seed: int, angle_deg: float = 0.2) -> np.ndarray:
@@ -77,6 +79,68 @@ def test_pre_check_frames_mean_and_uncertainty() -> None:
         measure_tilt_frames([])
 
 
+def _taker(sc: SideSceneSample) -> tuple[Callable[[int], list[np.ndarray]], list[int]]:
+    """The view's further frames on demand, as a camera streams them; and how many of
+    them were asked for, call by call."""
+    asked: list[int] = []
+    count = itertools.count()
+    assert sc.further is not None
+
+    def more(k: int) -> list[np.ndarray]:
+        asked.append(k)
+        return [sc.further(next(count)) for _ in range(k)]
+
+    return more, asked
+
+
+def test_an_uncertain_tilt_takes_more_frames_until_it_is_certain_enough() -> None:
+    """A faint, unevenly lit view whose 4 frames leave the tilt uncertain to 0.0016 deg:
+    the pre-check doubles its frames while u is above the target, within the most
+    allowed, and its error stays within its (smaller) uncertainty."""
+    sc = random_side_scene(np.random.default_rng(2), "uneven light", frames=4)
+    rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
+    four = measure_tilt_frames(list(sc.frames), **rois)
+    assert four.u_deg > 0.0012 and four.stop == ""
+    more, asked = _taker(sc)
+    av = measure_tilt_frames(list(sc.frames), **rois, more=more, u_target_deg=0.0006,
+                             max_frames=32)
+    assert asked[:2] == [4, 8] and av.n == 4 + sum(asked) and av.n <= 32
+    assert av.frames[0].tilt_deg == four.frames[0].tilt_deg  # the same first frames
+    assert av.u_deg < 0.6 * four.u_deg
+    assert av.n >= 16  # 4 + 4 + 8 at least
+    # it stops on reaching the target, the most allowed, or a doubling that barely helped
+    why = ("<= 0.0006" if av.u_deg <= 0.0006 else "most allowed" if av.n == 32
+           else "fell only")
+    assert why in av.stop, (av.n, av.u_deg, av.stop)
+    assert abs(av.tilt_deg - sc.tilt_deg) <= 3 * av.u_deg
+    # the most allowed holds: 4 frames, then 2 to reach 6, then none
+    more, asked = _taker(sc)
+    capped = measure_tilt_frames(list(sc.frames), **rois, more=more, u_target_deg=1e-6,
+                                 max_frames=6)
+    assert asked == [2] and capped.n == 6 and "6 frames, the most allowed" in capped.stop
+    # a tilt already certain enough takes no frame more
+    more, asked = _taker(sc)
+    done = measure_tilt_frames(list(sc.frames), **rois, more=more, u_target_deg=0.01)
+    assert asked == [] and done.n == 4 and done.tilt_deg == four.tilt_deg
+
+
+def test_frames_that_repeat_their_error_stop_the_frame_taking() -> None:
+    """Frames that share their error (here the same frame again, as a still view's JPEG
+    coding repeats most of its error): a doubling does not lower u, so the pre-check
+    stops there and says why instead of taking frames up to the most allowed."""
+    sc = random_side_scene(np.random.default_rng(2), "uneven light", frames=4)
+    rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
+    asked: list[int] = []
+
+    def same(k: int) -> list[np.ndarray]:
+        asked.append(k)
+        return [sc.frames[1]] * k
+
+    av = measure_tilt_frames([sc.frames[1]] * 4, **rois, more=same, u_target_deg=1e-6,
+                             max_frames=64)
+    assert asked == [4] and av.n == 8 and "share" in av.stop
+
+
 def test_more_frames_leave_the_corpus_as_it_was() -> None:
     """Asking for more frames of a view draws their noise from a child generator: the
     first frame and every scene drawn after it are the ones a single frame gives."""
@@ -116,7 +180,7 @@ def test_default_tools_average_the_configured_frames() -> None:
     tools = default_tools(cfg)
     assert tools.tilt_frames is not None
     r = tools.tilt_frames([Frame(image=f, timestamp=float(k), seq=k)
-                           for k, f in enumerate(sc.frames)])
+                           for k, f in enumerate(sc.frames)], None)
     assert r.frames == 3 and r.u_deg is not None and 0 < r.u_deg < 0.002
     assert r.tilt_deg == pytest.approx(sc.tilt_deg, abs=max(3 * r.u_deg, 1e-4))
     d["procedure"] = {**d.get("procedure", {}), "precheck": {"tilt_frames": 0}}

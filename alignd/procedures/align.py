@@ -626,8 +626,9 @@ class _Run:
                 reading = self._tilt(side, pc.tilt_frames)
                 self.st.tilt_deg, self.st.tilt_u_deg = reading.tilt_deg, reading.u_deg
                 u = "" if reading.u_deg is None else f" +- {reading.u_deg:.4f}"
+                why = f"; {reading.stop}" if reading.stop else ""
                 self.recorder.event(f"pre-check: sample tilt {self.st.tilt_deg:+.4f}{u} deg "
-                                    f"(mean of {reading.frames} side frame(s), u k = 1)")
+                                    f"(mean of {reading.frames} side frame(s), u k = 1{why})")
                 if abs(self.st.tilt_deg) > pc.max_tilt_deg:
                     problems.append(("out_of_tolerance",
                                      f"sample tilt {self.st.tilt_deg:+.3f} deg exceeds "
@@ -656,12 +657,14 @@ class _Run:
     def _tilt(self, side: Camera, n: int) -> TiltReading:
         """The sample tilt over ``n`` side frames, each exposed after the one before (a
         real camera's frames have independent noise; one frame's fit is good to a few
-        thousandths of a degree at worst). Tools without a multi-frame measurement give
-        the mean of ``tools.tilt`` and, from 2 frames on, its standard error."""
+        thousandths of a degree at worst); ``tools.tilt_frames`` may take more while the
+        tilt is less certain than ``precheck.tilt_u_target_deg``. Tools without a
+        multi-frame measurement give the mean of ``tools.tilt`` and, from 2 frames on, its
+        standard error."""
         assert self.tools is not None
         frames = grab_frames(side, n, self.abort)
         if self.tools.tilt_frames is not None:
-            return self.tools.tilt_frames(frames)
+            return self.tools.tilt_frames(frames, lambda k: grab_frames(side, k, self.abort))
         assert self.tools.tilt is not None
         t = np.array([float(self.tools.tilt(f)) for f in frames])
         u = float(np.std(t, ddof=1) / math.sqrt(n)) if n > 1 else None

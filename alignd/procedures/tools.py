@@ -87,11 +87,13 @@ class TiltReading:
     tilt_deg: float
     u_deg: float | None  # None when the tool cannot say
     frames: int = 1
+    stop: str = ""  # why no more frames were taken (a target uncertainty's frame taking)
 
 
 TrackFn = Callable[[Frame], Corners]
 SolveFn = Callable[[np.ndarray, np.ndarray, float | None], "CentreResult"]  # angles, points, px
 ScalarFn = Callable[[Frame], float]
+MoreFrames = Callable[[int], list[Frame]]  # k -> k further frames of the same still view
 
 
 @dataclass
@@ -107,7 +109,8 @@ class Tools:
     names: dict[str, str] | None = None
     rim: Callable[[list[Frame], float | None, float | None], RimInfo] | None = None
     side: Callable[[Frame], SideInfo] | None = None
-    tilt_frames: Callable[[list[Frame]], TiltReading] | None = None  # several frames at once
+    # several frames at once; with MoreFrames, more of them while the tilt is uncertain
+    tilt_frames: Callable[[list[Frame], MoreFrames | None], TiltReading] | None = None
 
 
 def expected_holder_px(cfg: AligndConfig) -> tuple[float, float] | None:
@@ -209,10 +212,15 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
         return float(vision.measure_tilt(frame.gray, pole_roi_px=pole_roi,
                                   sample_roi_px=sample_roi).tilt_deg)
 
-    def tilt_frames(frames: list[Frame]) -> TiltReading:
-        av = vision.measure_tilt_frames([f.gray for f in frames], pole_roi_px=pole_roi,
-                                        sample_roi_px=sample_roi)
-        return TiltReading(av.tilt_deg, av.u_deg, av.n)
+    pc = cfg.procedure.precheck if cfg is not None else None
+
+    def tilt_frames(frames: list[Frame], more: MoreFrames | None = None) -> TiltReading:
+        grab = None if more is None else (lambda k: [f.gray for f in more(k)])
+        av = vision.measure_tilt_frames(
+            [f.gray for f in frames], pole_roi_px=pole_roi, sample_roi_px=sample_roi,
+            more=grab, u_target_deg=pc.tilt_u_target_deg if pc else None,
+            max_frames=pc.tilt_max_frames if pc else None)
+        return TiltReading(av.tilt_deg, av.u_deg, av.n, av.stop)
 
     def eccentricity(frame: Frame) -> float:
         return float(vision.fit_rim(frame.gray).eccentricity)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
@@ -484,6 +485,7 @@ class TiltAverage:
     # see :func:`_jpeg_bias`); None for frames not JPEG-coded
     jpeg_quality: int | None = None
     jpeg_bias_deg: float | None = None
+    stop: str = ""  # why frame taking stopped, when it was driven by a target uncertainty
 
     @property
     def n(self) -> int:
@@ -505,25 +507,75 @@ class TiltAverage:
 
 def measure_tilt_frames(images: list[np.ndarray], *,
                         pole_roi_px: tuple[int, int, int, int] | None = None,
-                        sample_roi_px: tuple[int, int, int, int] | None = None) -> TiltAverage:
+                        sample_roi_px: tuple[int, int, int, int] | None = None,
+                        more: Callable[[int], list[np.ndarray]] | None = None,
+                        u_target_deg: float | None = None, max_frames: int | None = None
+                        ) -> TiltAverage:
     """The tilt from several frames of the same view (the pre-check's measurement): the
     first frame is measured as :func:`measure_tilt` does, the others track its edges (a
     full search again where an edge is not where it was). From 3 frames on, 8-bit grey
-    JPEG frames also have the coding's bias taken off (:class:`TiltAverage`)."""
+    JPEG frames also have the coding's bias taken off (:class:`TiltAverage`).
+
+    With ``more`` (k -> k further frames of the view) and ``u_target_deg``, frames are
+    added while the uncertainty is above the target: as many again each time, up to
+    ``max_frames`` in all, and no further once a doubling lowered it by less than
+    :data:`STALL` (independent noise falls by 1/sqrt 2; what the frames share, JPEG's
+    coding of a still view, does not). ``TiltAverage.stop`` says why it stopped."""
     if not images:
         raise VisionError("side image: no frame to measure the tilt in")
+    images = list(images)
     first = measure_tilt(images[0], pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px)
     frames = [first]
-    for img in images[1:]:
-        m = _tracked(img, first)
-        frames.append(m if m is not None else measure_tilt(
-            img, pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px))
+
+    def track(new: list[np.ndarray]) -> None:
+        for img in new:
+            m = _tracked(img, first)
+            frames.append(m if m is not None else measure_tilt(
+                img, pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px))
+
+    track(images[1:])
+    stop = ""
+    if more is not None and u_target_deg is not None:
+        limit = max(max_frames or len(frames), len(frames))
+        u, before = average_tilt(images, frames, jpeg=False).u_deg, math.inf
+        while True:
+            if u <= u_target_deg:
+                stop = f"u {u:.4f} <= {u_target_deg:g} deg"
+            elif len(frames) >= limit:
+                stop = f"{limit} frames, the most allowed"
+            elif u > STALL * before:
+                stop = (f"u fell only {before:.4f} -> {u:.4f} deg as the frames doubled (the "
+                        "frames share most of their error: more would not lower it much)")
+            if stop:
+                break
+            new = more(min(len(frames), limit - len(frames)))
+            if not new:
+                stop = "no further frame"
+                break
+            images.extend(new)
+            track(new)
+            before, u = u, average_tilt(images, frames, jpeg=False).u_deg
+    return replace(average_tilt(images, frames), stop=stop)
+
+
+# a doubling of the frames that lowers the tilt's uncertainty by less than this factor ends
+# the pre-check's frame taking: 1/sqrt 2 = 0.71 when the frames' errors are independent,
+# near 1 where they share it (a still view's JPEG coding); u's own estimate scatters, so
+# a raw view stops here now and then, having doubled its frames (docs/vision.md)
+STALL = 0.85
+
+
+def average_tilt(images: list[np.ndarray], frames: list[SideMeasurement], *,
+                 jpeg: bool = True) -> TiltAverage:
+    """The mean tilt of ``frames`` (measured in ``images``) and its standard uncertainty
+    (:class:`TiltAverage`); ``jpeg`` False leaves the coding's bias (a simulation of a
+    second or so) for a final call."""
     t = np.array([m.tilt_deg for m in frames])
     n = len(frames)
     u_fit = math.sqrt(float(np.mean([m.sigma_deg ** 2 for m in frames])) / n)
     u_scatter = float(np.std(t, ddof=1)) / math.sqrt(n) if n >= 3 else 0.0
     tilt, u = float(t.mean()), max(u_fit, u_scatter, _u_blocks(frames))
-    found = _jpeg_bias(images, frames) if n >= 3 else None
+    found = _jpeg_bias(images, frames) if n >= 3 and jpeg else None
     if found is None:
         return TiltAverage(tilt, u, tuple(frames))
     quality, bias = found

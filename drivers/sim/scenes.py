@@ -126,6 +126,9 @@ class SideSceneSample(_Views):
     encoding: Encoding
     params: dict[str, object] = field(default_factory=dict)
     more_frames: tuple[np.ndarray, ...] = ()  # further frames of the view, own noise
+    # j -> the view's frame j after ``frames`` (own noise; the same j, the same frame): as a
+    # camera keeps streaming, for the pre-check's frame taking by its uncertainty
+    further: Callable[[int], np.ndarray] | None = None
 
     @property
     def tilt_deg(self) -> float:
@@ -712,10 +715,15 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     noise = {"read_noise": float(rng.uniform(0.5, 2.0)),
              "electrons_per_dn": float(rng.uniform(40, 150))}
     out = _finish(img, rng, blur=0.0, enc=enc, **noise)
-    # more frames of the same view: their own noise (and coding) from a child generator,
-    # so that the scenes drawn after this one do not depend on how many frames were asked
-    more = tuple(_finish(img, child, blur=0.0, enc=enc, **noise)
-                 for child in (rng.spawn(frames - 1) if frames > 1 else []))
+    # more frames of the same view: their own noise (and coding) from child generators,
+    # so that the scenes drawn after this one do not depend on how many frames were asked;
+    # the last child seeds the frames asked for later
+    children = rng.spawn(frames)
+    more = tuple(_finish(img, child, blur=0.0, enc=enc, **noise) for child in children[:-1])
+    root = int(children[-1].integers(2 ** 62))
+
+    def further(j: int) -> np.ndarray:
+        return _finish(img, np.random.default_rng([root, j]), blur=0.0, enc=enc, **noise)
     ta = math.tan(math.radians(samp_ang))
     x_left_mid = float(slab[0, 0] - (y_mid - y_top) * ta)
     xs = (x_left_mid, x_left_mid + ws)
@@ -729,7 +737,7 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     sr = (max(int(near - half), 0), max(rows[0] + 10, 0), min(int(near + half + 1), w),
           min(rows[1] - 10, h))
     return SideSceneSample(out, cat, samp_ang, pole_ang, xs, near, pole_mid, rows, pr, sr,
-                           enc, params, more)
+                           enc, params, more, further)
 
 
 # ---- rim ---------------------------------------------------------------------------------
