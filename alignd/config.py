@@ -81,7 +81,7 @@ class PrecheckConfig(Strict):
         "again, up to tilt_max_frames; it stops early when a doubling barely lowers it (an "
         "error the frames share, e.g. MJPEG coding of a still view, which more frames do not "
         "average). null: tilt_frames frames, no more"))
-    tilt_max_frames: int = Field(32, ge=1, le=1000, description=(
+    tilt_max_frames: int = Field(64, ge=1, le=1000, description=(
         "the most side frames the tilt pre-check takes when tilt_u_target_deg asks for more "
         "(never fewer than tilt_frames); about 0.1 s a frame"))
     rim_frames: int = Field(8, ge=1, le=100, description=(

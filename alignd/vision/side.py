@@ -561,7 +561,9 @@ def measure_tilt_frames(images: list[np.ndarray], *,
 # a doubling of the frames that lowers the tilt's uncertainty by less than this factor ends
 # the pre-check's frame taking: 1/sqrt 2 = 0.71 when the frames' errors are independent,
 # near 1 where they share it (a still view's JPEG coding); u's own estimate scatters, so
-# a raw view stops here now and then, having doubled its frames (docs/vision.md)
+# a raw view stops here now and then, having doubled its frames. On the bench's 300 views
+# (regions, up to 64 frames, target 0.0006 deg) it saved 6 frames a view and the largest
+# error was 0.00285 deg with it, 0.00294 without (docs/vision.md, Frames by uncertainty)
 STALL = 0.85
 
 
