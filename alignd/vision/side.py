@@ -537,7 +537,7 @@ def measure_tilt_frames(images: list[np.ndarray], *,
     stop = ""
     if more is not None and u_target_deg is not None:
         limit = max(max_frames or len(frames), len(frames))
-        u, before = average_tilt(images, frames, jpeg=False).u_deg, math.inf
+        u, before = _average_tilt(images, frames, jpeg=False).u_deg, math.inf
         while True:
             if u <= u_target_deg:
                 stop = f"u {u:.4f} <= {u_target_deg:g} deg"
@@ -554,8 +554,8 @@ def measure_tilt_frames(images: list[np.ndarray], *,
                 break
             images.extend(new)
             track(new)
-            before, u = u, average_tilt(images, frames, jpeg=False).u_deg
-    return replace(average_tilt(images, frames), stop=stop)
+            before, u = u, _average_tilt(images, frames, jpeg=False).u_deg
+    return replace(_average_tilt(images, frames), stop=stop)
 
 
 # a doubling of the frames that lowers the tilt's uncertainty by less than this factor ends
@@ -567,7 +567,7 @@ def measure_tilt_frames(images: list[np.ndarray], *,
 STALL = 0.85
 
 
-def average_tilt(images: list[np.ndarray], frames: list[SideMeasurement], *,
+def _average_tilt(images: list[np.ndarray], frames: list[SideMeasurement], *,
                  jpeg: bool = True) -> TiltAverage:
     """The mean tilt of ``frames`` (measured in ``images``) and its standard uncertainty
     (:class:`TiltAverage`); ``jpeg`` False leaves the coding's bias (a simulation of a
