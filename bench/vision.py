@@ -35,7 +35,6 @@ import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
@@ -324,21 +323,6 @@ def corpus_top(n: int, seed: int) -> tuple[list[Row], dict[str, float]]:
     return rows, summary
 
 
-class _Stream:
-    """A view's further frames on demand, as a camera streams them (``frame(j)``: the
-    j-th), and the process time spent drawing them."""
-
-    def __init__(self, frame: Callable[[int], np.ndarray]) -> None:
-        self.frame, self.taken, self.drawing_s = frame, 0, 0.0
-
-    def __call__(self, k: int) -> list[np.ndarray]:
-        t0 = time.process_time()
-        out = [self.frame(self.taken + j) for j in range(k)]
-        self.taken += k
-        self.drawing_s += time.process_time() - t0
-        return out
-
-
 TILT_FRAMES = PrecheckConfig().tilt_frames  # the pre-check's default frame count
 TILT_U_TARGET = PrecheckConfig().tilt_u_target_deg  # ... and its frame taking by uncertainty
 TILT_MAX_FRAMES = PrecheckConfig().tilt_max_frames
@@ -378,7 +362,7 @@ def corpus_side(n: int, seed: int, frames: int = TILT_FRAMES,
             rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px} \
                 if mode == "ROI" else {}
             t0 = time.process_time()
-            stream = _Stream(sc.further) if sc.further is not None else None
+            stream = sc.stream()
             try:
                 av = measure_tilt_frames(list(sc.frames), **rois, more=stream,
                                          u_target_deg=u_target, max_frames=max_frames)
@@ -386,7 +370,7 @@ def corpus_side(n: int, seed: int, frames: int = TILT_FRAMES,
                 log_line(f"side #{i} ({cat}, {mode}): {str(exc)[:110]}")
                 continue
             # the pre-check's own time: drawing the further frames is the camera's
-            times[mode].append(time.process_time() - t0 - (stream.drawing_s if stream else 0))
+            times[mode].append(time.process_time() - t0 - stream.drawing_s)
             taken[mode].append(av.n)
             m = av.frames[0]
             wrong = [x for x in (e.x_mid_px for f in av.frames for e in f.sample_edges[:1])

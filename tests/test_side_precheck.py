@@ -3,9 +3,7 @@ randomised side scenes' truth (seeded; see bench/vision.py for the corpus number
 
 from __future__ import annotations
 
-import itertools
 import math
-from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -16,7 +14,7 @@ from alignd.errors import VisionError
 from alignd.vision.edge_profile import fit_vertical_edge
 from alignd.vision.jpeg_bias import edge_angle_bias, jpeg_quality
 from alignd.vision.side import measure_tilt, measure_tilt_frames
-from drivers.sim.scenes import SideSceneSample, random_side_scene
+from drivers.sim.scenes import random_side_scene
 
 
 def _saturated_edge(seed: int, angle_deg: float = 0.2) -> np.ndarray:
@@ -79,20 +77,6 @@ def test_pre_check_frames_mean_and_uncertainty() -> None:
         measure_tilt_frames([])
 
 
-def _taker(sc: SideSceneSample) -> tuple[Callable[[int], list[np.ndarray]], list[int]]:
-    """The view's further frames on demand, as a camera streams them; and how many of
-    them were asked for, call by call."""
-    asked: list[int] = []
-    count = itertools.count()
-    assert sc.further is not None
-
-    def more(k: int) -> list[np.ndarray]:
-        asked.append(k)
-        return [sc.further(next(count)) for _ in range(k)]
-
-    return more, asked
-
-
 def test_an_uncertain_tilt_takes_more_frames_until_it_is_certain_enough() -> None:
     """A faint, unevenly lit view whose 4 frames leave the tilt uncertain to 0.0016 deg:
     the pre-check doubles its frames while u is above the target, within the most
@@ -101,10 +85,10 @@ def test_an_uncertain_tilt_takes_more_frames_until_it_is_certain_enough() -> Non
     rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
     four = measure_tilt_frames(list(sc.frames), **rois)
     assert four.u_deg > 0.0012 and four.stop == ""
-    more, asked = _taker(sc)
+    more = sc.stream()
     av = measure_tilt_frames(list(sc.frames), **rois, more=more, u_target_deg=0.0006,
                              max_frames=32)
-    assert asked[:2] == [4, 8] and av.n == 4 + sum(asked) and av.n <= 32
+    assert more.asked[:2] == [4, 8] and av.n == 4 + sum(more.asked) and av.n <= 32
     assert av.frames[0].tilt_deg == four.frames[0].tilt_deg  # the same first frames
     assert av.u_deg < 0.6 * four.u_deg
     assert av.n >= 16  # 4 + 4 + 8 at least
@@ -114,14 +98,14 @@ def test_an_uncertain_tilt_takes_more_frames_until_it_is_certain_enough() -> Non
     assert why in av.stop, (av.n, av.u_deg, av.stop)
     assert abs(av.tilt_deg - sc.tilt_deg) <= 3 * av.u_deg
     # the most allowed holds: 4 frames, then 2 to reach 6, then none
-    more, asked = _taker(sc)
+    more = sc.stream()
     capped = measure_tilt_frames(list(sc.frames), **rois, more=more, u_target_deg=1e-6,
                                  max_frames=6)
-    assert asked == [2] and capped.n == 6 and "6 frames, the most allowed" in capped.stop
+    assert more.asked == [2] and capped.n == 6 and "6 frames, the most allowed" in capped.stop
     # a tilt already certain enough takes no frame more
-    more, asked = _taker(sc)
+    more = sc.stream()
     done = measure_tilt_frames(list(sc.frames), **rois, more=more, u_target_deg=0.01)
-    assert asked == [] and done.n == 4 and done.tilt_deg == four.tilt_deg
+    assert more.asked == [] and done.n == 4 and done.tilt_deg == four.tilt_deg
 
 
 def test_frames_that_repeat_their_error_stop_the_frame_taking() -> None:

@@ -33,6 +33,7 @@ width.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
@@ -108,6 +109,25 @@ class _Views:
         return (self.image, *self.more_frames)
 
 
+class FrameStream:
+    """A view's further frames on demand, as a camera keeps streaming them: each call
+    returns the next ``k``. ``asked`` lists the calls' k, ``drawing_s`` the process time
+    spent drawing them (a camera's, not the measurement's)."""
+
+    def __init__(self, frame: Callable[[int], np.ndarray]) -> None:
+        self.frame = frame
+        self.asked: list[int] = []
+        self.drawing_s = 0.0
+
+    def __call__(self, k: int) -> list[np.ndarray]:
+        t0 = time.process_time()
+        start = sum(self.asked)
+        self.asked.append(k)
+        out = [self.frame(start + j) for j in range(k)]
+        self.drawing_s += time.process_time() - t0
+        return out
+
+
 @dataclass(frozen=True)
 class SideSceneSample(_Views):
     """A side-camera frame and its truth (angles in deg from the image vertical, + when the
@@ -133,6 +153,12 @@ class SideSceneSample(_Views):
     @property
     def tilt_deg(self) -> float:
         return self.sample_angle_deg - self.pole_angle_deg
+
+    def stream(self) -> FrameStream:
+        """The view's further frames from the first on, as a new stream."""
+        if self.further is None:
+            raise ValueError("this side view was drawn without further frames")
+        return FrameStream(self.further)
 
 
 @dataclass(frozen=True)
