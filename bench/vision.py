@@ -577,11 +577,9 @@ def print_side(c_side: int, seed: int, frames: int = TILT_FRAMES,
                u_target: float | None = TILT_U_TARGET, max_frames: int = TILT_MAX_FRAMES
                ) -> dict[str, float]:
     s_rows, ss = corpus_side(c_side, seed, frames, u_target, max_frames)
-    pre = (f"'x{frames}+': the pre-check, the mean of {frames} frames of the view with their "
-           f"own noise, more while u > {u_target:g} deg (up to {max_frames})"
-           if u_target is not None else
-           f"'x{frames}': the pre-check, the mean of {frames} frames of the view with their "
-           "own noise")
+    more = "" if u_target is None else f", more while u > {u_target:g} deg (up to {max_frames})"
+    pre = (f"'x{frames}{'+' if more else ''}': the pre-check, the mean of {frames} frames of "
+           f"the view with their own noise{more}")
     print(f"\nrandomised side scenes (tilt; {c_side} views, each with and without regions; "
           f"'ROI'/'auto': one frame; {pre})")
     print_table(("mode: category", "n", "found %", "wrong edge", "tilt RMS deg",

@@ -568,7 +568,7 @@ STALL = 0.85
 
 
 def _average_tilt(images: list[np.ndarray], frames: list[SideMeasurement], *,
-                 jpeg: bool = True) -> TiltAverage:
+                  jpeg: bool = True) -> TiltAverage:
     """The mean tilt of ``frames`` (measured in ``images``) and its standard uncertainty
     (:class:`TiltAverage`); ``jpeg`` False leaves the coding's bias (a simulation of a
     second or so) for a final call."""
