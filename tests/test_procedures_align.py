@@ -530,11 +530,19 @@ def test_tilt_precheck_grabs_fresh_side_frames_when_the_tool_asks_for_more() -> 
         return TiltReading(float(np.mean(t)), 0.0001, len(got), "u 0.0001 <= 0.0006 deg")
 
     rec = MemoryRecorder()
+    events: list[ProgressEvent] = []
     res = run_check(rig, cfg, tools=replace(standin_tools(4), tilt_frames=tilt_frames),
-                    recorder=rec)
-    n = 2 * cfg.procedure.precheck.tilt_frames
+                    recorder=rec, progress=events.append)
+    pc = cfg.procedure.precheck
+    n = 2 * pc.tilt_frames
     assert len(seqs) == n and seqs == sorted(set(seqs))  # fresh frames, none twice
     assert res.tilt_deg == pytest.approx(world.cfg.tilt_deg, abs=1e-6)
     said = [e for e in rec.events if "pre-check: sample tilt" in e]
     assert said and f"mean of {n} side frame(s)" in said[0]
     assert "u 0.0001 <= 0.0006 deg" in said[0]
+    # the operator sees the further frames being taken, and how many so far of the most
+    asked = [e for e in events if e.phase == "precheck" and "more frame" in e.message]
+    assert len(asked) == 1
+    assert (asked[0].step, asked[0].total) == (pc.tilt_frames, pc.tilt_max_frames)
+    assert f"{pc.tilt_frames} more frame(s)" in asked[0].message
+    assert f"above {pc.tilt_u_target_deg:g} deg" in asked[0].message

@@ -57,7 +57,7 @@ from alignd.procedures.sweep import (
 )
 from alignd.procedures.tools import RimReading, TiltReading, Tools, default_tools
 from alignd.textfmt import identity_text
-from drivers.camera import Camera
+from drivers.camera import Camera, Frame
 
 log = logging.getLogger(__name__)
 
@@ -275,8 +275,9 @@ class _Run:
 
     # ---- helpers ---------------------------------------------------------------------
     def _emit(self, phase: Phase, message: str, *, m: Measurement | None = None,
-              iteration: int | None = None) -> None:
-        ev = ProgressEvent(phase, message, iteration=iteration,
+              iteration: int | None = None, step: int | None = None,
+              total: int | None = None) -> None:
+        ev = ProgressEvent(phase, message, step=step, total=total, iteration=iteration,
                            offset_um=None if m is None else (float(m.offset_um[0]),
                                                              float(m.offset_um[1])),
                            offset_norm_um=None if m is None else m.norm_um,
@@ -664,7 +665,21 @@ class _Run:
         assert self.tools is not None
         frames = grab_frames(side, n, self.abort)
         if self.tools.tilt_frames is not None:
-            return self.tools.tilt_frames(frames, lambda k: grab_frames(side, k, self.abort))
+            pc = self.p.precheck
+            taken = [len(frames)]
+
+            def more(k: int) -> list[Frame]:
+                # a faint view may take several seconds of frames: the operator sees why
+                target = pc.tilt_u_target_deg
+                self._emit("precheck", f"side-camera tilt: {k} more frame(s), its "
+                           "uncertainty still above " + (f"{target:g} deg" if target
+                                                         else "the target"),
+                           step=taken[0], total=max(pc.tilt_max_frames, n))
+                got = grab_frames(side, k, self.abort)
+                taken[0] += len(got)
+                return got
+
+            return self.tools.tilt_frames(frames, more)
         assert self.tools.tilt is not None
         t = np.array([float(self.tools.tilt(f)) for f in frames])
         u = float(np.std(t, ddof=1) / math.sqrt(n)) if n > 1 else None
