@@ -546,3 +546,22 @@ def test_tilt_precheck_grabs_fresh_side_frames_when_the_tool_asks_for_more() -> 
     assert (asked[0].step, asked[0].total) == (pc.tilt_frames, pc.tilt_max_frames)
     assert f"{pc.tilt_frames} more frame(s)" in asked[0].message
     assert f"above {pc.tilt_u_target_deg:g} deg" in asked[0].message
+
+
+def test_precheck_warns_when_the_tracker_flags_the_holder() -> None:
+    """A holder found with a warning (its edges clipped all round) is not refused, but the
+    run's warnings and events carry what the tracker said, once."""
+    from dataclasses import replace
+
+    cfg = sim_config()
+    rig, _world = scene_rig(cfg, 5)
+    base = standin_tools(5)
+    said = "the holder's edges clip along all four sides; lower the exposure"
+
+    def track(frame: Any) -> Corners:
+        return replace(base.track(frame), warning=said)
+
+    rec = MemoryRecorder()
+    res = run_check(rig, cfg, tools=replace(base, track=track), recorder=rec)
+    assert res.details["warnings"].count(f"pre-check: top camera: {said}") == 1
+    assert any(said in e and e.startswith("warning:") for e in rec.events)

@@ -67,6 +67,22 @@ def test_top_json_fields(images, capsys) -> None:
         assert o["sample_yaw_deg"] == pytest.approx(1.5, abs=0.05)
 
 
+def test_top_warns_of_a_holder_clipped_all_round(images, tmp_path, capsys) -> None:
+    """A frame whose holder reads full scale along every side: measured, with a warning in
+    the JSON and on the human line that says what to do; a clean frame has none."""
+    from test_vision_holder_clip import _saturated_holder
+
+    img, _ = _saturated_holder(360.0, 1.3, 0)
+    sat = tmp_path / "saturated.png"
+    cv2.imwrite(str(sat), img)
+    assert main(["analyze", "top", str(sat), images["tops"][0], "--json"]) == 0
+    got, clean = _lines(capsys.readouterr().out)
+    assert "lower the exposure" in got["warning"] and "warning" not in clean
+    assert main(["analyze", "top", str(sat)]) == 0
+    assert "\n  warning: the holder's edges clip along all four sides" in (
+        capsys.readouterr().out)
+
+
 def test_top_sweep_file_round_trips_through_the_solver_reader(images, tmp_path, capsys) -> None:
     out = tmp_path / "sweep.json"
     rc = main(["analyze", "top", *images["tops"], "--sweep-out", str(out),

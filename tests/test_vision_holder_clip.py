@@ -80,3 +80,25 @@ def test_clipped_pixels_do_not_bend_the_blur() -> None:
                              margin_px=10.0, min_contrast=15.0)
     _fine, widths = fit_crossings_blur(gray, sides)
     assert np.all(np.abs(widths - 1.3) < 0.15)
+
+
+def test_a_holder_clipped_all_round_is_flagged_for_the_operator() -> None:
+    """A face far beyond full scale clips every side: its corners err by 0.3-1.5 px while
+    corner_sigma_px stays under 0.1, and nothing in the frame shows how far beyond it lies.
+    The detection says so (``clipped_sides``, ``clip_warning``, the JSON's warning), and
+    the default tracker hands the warning on to the procedure; a face below full scale
+    gives no warning."""
+    from alignd.procedures.tools import default_tools
+    from drivers.camera import Frame
+
+    img, _truth = _saturated_holder(360.0, 1.3, 0)
+    det = track_holder(img, expected_size_px=(180.0, 100.0))
+    assert det.ok and det.clipped_sides == 4
+    assert "lower the exposure" in det.clip_warning
+    assert det.to_json()["warning"] == det.clip_warning
+    assert default_tools().track(Frame(img, 0.0, 1)).warning == det.clip_warning
+    fine, _ = _saturated_holder(240.0, 1.3, 0)
+    ok = track_holder(fine, expected_size_px=(180.0, 100.0))
+    assert ok.ok and ok.clipped_sides == 0 and ok.clip_warning == ""
+    assert "warning" not in ok.to_json()
+    assert default_tools().track(Frame(fine, 0.0, 1)).warning == ""

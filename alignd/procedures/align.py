@@ -599,6 +599,8 @@ class _Run:
         else:
             raise VisionError(f"holder not found in {HOLDER_LOOK_FRAMES} top-camera frames "
                               f"({det.reason or 'no detection'}); nothing moved")
+        if det.warning:
+            self._warn(f"pre-check: top camera: {det.warning}")
         if self.tools.eccentricity is not None or self.tools.rim is not None:
             check_abort(self.abort)
             # (tools without a rim fit read one still frame)

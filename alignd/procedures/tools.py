@@ -31,6 +31,7 @@ class Corners:
     ok: bool
     quality: float = 1.0
     reason: str = ""
+    warning: str = ""  # found, but the operator should know (a holder clipped all round)
 
 
 @dataclass(frozen=True)
@@ -190,7 +191,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
                                       size_tolerance=SIZE_TOLERANCE)
         except VisionError as exc:
             return Corners(np.full((4, 2), np.nan), False, 0.0, str(exc))
-        out = as_corners(det)
+        out = dataclasses.replace(as_corners(det), warning=det.clip_warning)
         if out.ok and expected is not None:
             out = size_checked(out, expected)
         if out.ok:

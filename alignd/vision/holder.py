@@ -74,6 +74,8 @@ _CLIP_SHARE = 0.2
 # its noise clipped, which lowers the tails' mean (corpus #751 of the bench's seed: a
 # holder at about full scale, area corners 0.3 px off where the step's clip explains 0.1)
 _CLIP_AGREE_PX = 0.3
+# a side clipped in more than this share of its crossings counts toward clip_warning
+_SATURATED_SHARE = 0.5
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 _WIDE = 9
@@ -106,6 +108,22 @@ class HolderDetection:
     # each side's Gaussian edge width (px) found by the profile fit, side k running from
     # corner k to corner k + 1; () when the profile fit was not used
     side_blur_px: tuple[float, ...] = ()
+    # sides whose edge pixels clip (full scale or zero) in over _SATURATED_SHARE of their
+    # columns: at 4 the face's true level is nowhere visible (see clip_warning)
+    clipped_sides: int = 0
+
+    @property
+    def clip_warning(self) -> str:
+        """What to tell the operator about a holder whose edges clip along every side; ""
+        if not. How far beyond the clip the level lies cannot be seen, and a step twice
+        the visible one or more moves the corners by 0.5-1.8 px while corner_sigma_px
+        stays 0.05-0.1 (docs/vision.md, clipped edges)."""
+        if self.clipped_sides < 4:
+            return ""
+        return ("the holder's edges clip along all four sides (its face or what surrounds "
+                "it reads full scale or zero), so its corners may be off by up to about 2 px, "
+                "more than corner_sigma_px says; lower the exposure or the light until "
+                "neither reaches full scale")
 
     def to_json(self) -> dict[str, object]:
         """The analyze contract's fields (NaN corners become null)."""
@@ -118,7 +136,8 @@ class HolderDetection:
                 "corner_sigma_px": (round(self.corner_sigma_px, 5)
                                     if math.isfinite(self.corner_sigma_px) else None),
                 "polarity": self.polarity, "size_px": list(self.size_px),
-                **({"reason": self.reason} if self.reason else {})}
+                **({"reason": self.reason} if self.reason else {}),
+                **({"warning": self.clip_warning} if self.clip_warning else {})}
 
 
 def order_corners(corners: np.ndarray, hint: np.ndarray | None = None) -> np.ndarray:
@@ -490,6 +509,9 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                             size_tolerance)
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
+    if det.ok:
+        det = replace(det, clipped_sides=int(np.count_nonzero(
+            _clipped_shares(gray, used) > _SATURATED_SHARE)))
     return det
 
 
@@ -516,14 +538,20 @@ def _clip_offset(area: list[tuple[Line | None, EdgePoints]],
 
 
 def _clipped_share(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]]) -> float:
-    """The largest share, over the sides, of crossings with a pixel within 4 px of the
-    edge (the area method's window) at the sensor's full scale or at zero (frames are in
-    8-bit DN of full scale, see :func:`alignd.vision.edges.as_gray`; a float frame above
-    255 counts as unclipped)."""
+    """The largest of :func:`_clipped_shares`."""
+    return float(np.max(_clipped_shares(gray, sides), initial=0.0))
+
+
+def _clipped_shares(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]]
+                    ) -> np.ndarray:
+    """Each side's share of crossings with a pixel within 4 px of the edge (the area
+    method's window) at the sensor's full scale or at zero (frames are in 8-bit DN of full
+    scale, see :func:`alignd.vision.edges.as_gray`; a float frame above 255 counts as
+    unclipped, every share 0)."""
     h, w = gray.shape
     j = np.arange(-4, 5)
-    worst = 0.0
-    for _ln, pts in sides:
+    out = np.zeros(len(sides))
+    for k, (_ln, pts) in enumerate(sides):
         if pts.xy.shape[0] == 0:
             continue
         t, c = (pts.xy[:, 1], pts.xy[:, 0]) if pts.vertical else (pts.xy[:, 0], pts.xy[:, 1])
@@ -531,9 +559,9 @@ def _clipped_share(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]]
         c = np.clip(np.rint(c).astype(np.intp)[:, None] + j, 0, (w if pts.vertical else h) - 1)
         v = gray[t[:, None], c] if pts.vertical else gray[c, t[:, None]]
         if float(v.max()) > 255.0 + 1e-3:
-            return 0.0
-        worst = max(worst, float(np.mean(np.any((v >= 254.5) | (v <= 0.5), axis=1))))
-    return worst
+            return np.zeros(len(sides))
+        out[k] = float(np.mean(np.any((v >= 254.5) | (v <= 0.5), axis=1)))
+    return out
 
 
 def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
