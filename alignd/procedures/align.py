@@ -673,9 +673,9 @@ class _Run:
             def more(k: int) -> list[Frame]:
                 # a faint view may take several seconds of frames: the operator sees why
                 target = pc.tilt_u_target_deg
+                above = "its target" if target is None else f"{target:g} deg"
                 self._emit("precheck", f"side-camera tilt: {k} more frame(s), its "
-                           "uncertainty still above " + (f"{target:g} deg" if target
-                                                         else "the target"),
+                           f"uncertainty still above {above}",
                            step=taken[0], total=max(pc.tilt_max_frames, n))
                 got = grab_frames(side, k, self.abort)
                 taken[0] += len(got)
