@@ -50,7 +50,7 @@ def test_a_rig_that_matches_its_config_is_commissioned() -> None:
     assert rec.verdict == "commissioned", rec.reason
     v = verdicts(rec)
     for item in ("turntable.direction", "turntable.angle_scale", "top.pixel_size",
-                 "holder.size", "axis.x.direction", "axis.y.direction"):
+                 "holder.size", "axis.x.direction", "axis.y.direction", "top.exposure"):
         assert v[item] == "pass", (item, rec.finding(item))
     assert rec.turntable_sign == 1
     assert rec.angle_scale == pytest.approx(1.0, abs=0.002)
@@ -165,3 +165,28 @@ def test_soft_limits_beyond_the_controllers_travel_fail() -> None:
     assert "[-100, 100]" in f.message
     other = rec.finding("device.x")
     assert other is not None and other.verdict == "pass"  # the Zaber axis reports no travel
+
+
+def test_a_holder_clipped_all_round_is_a_warning_that_names_the_exposure() -> None:
+    """Where the tracker says the holder's edges clip along every side, commissioning
+    warns under top.exposure (what to do, named "clipped") and still commissions: the
+    corners are measured, only less surely than their sigma says."""
+    import dataclasses
+
+    from alignd.procedures.tools import Corners
+    from drivers.camera import Frame
+
+    cfg = sim_config()
+    rig, _world = scene_rig(cfg, 2)
+    base = image_order_tools(2)
+    said = "the holder's edges clip along all four sides; lower the exposure or the light"
+
+    def track(frame: Frame) -> Corners:
+        return dataclasses.replace(base.track(frame), warning=said)
+
+    rec = run_commission(rig, cfg, tools=dataclasses.replace(base, track=track),
+                         abort=threading.Event())
+    f = rec.finding("top.exposure")
+    assert f is not None and f.verdict == "warn" and f.name == "clipped"
+    assert said in f.message
+    assert rec.verdict == "commissioned", rec.reason

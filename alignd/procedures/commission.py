@@ -261,6 +261,7 @@ class _Pose:
 
     corners: np.ndarray  # (4, 2)
     sigma_px: float  # scatter of the corners between the frames (per coordinate)
+    warning: str = ""  # the tracker's, from any of the frames (its edges clipped all round)
 
     @property
     def centre(self) -> np.ndarray:
@@ -316,6 +317,7 @@ class _Commission:
         assert cam is not None and self.tools is not None
         settled = cam.clock.now()
         found = []
+        warning = ""
         for j in range(frames):
             frame = grab_fresh(cam, settled)
             self.n_frames += 1
@@ -323,11 +325,12 @@ class _Commission:
             det = self.tools.track(frame)
             if det.ok:
                 found.append(det.corners_px)
+                warning = warning or det.warning
         if not found:
             return None
         arr = np.asarray(found)
         sig = float(arr.std(axis=0, ddof=1).mean()) if len(arr) > 1 else float("nan")
-        return _Pose(arr.mean(axis=0), sig)
+        return _Pose(arr.mean(axis=0), sig, warning)
 
     def _need(self, label: str) -> _Pose:
         pose = self._look(label)
@@ -447,6 +450,12 @@ class _Commission:
                           value=roll, sigma=math.degrees(pose.sigma_px / np.hypot(*u))
                           if math.isfinite(pose.sigma_px) else None, unit="deg",
                           name="" if abs(roll) <= 10 else "rolled"))
+        # a holder clipped all round hides how far beyond full scale its step goes, and
+        # with it where its edges are: commissioning is where the exposure gets set
+        self._add(Finding("top.exposure", "warn" if pose.warning else "pass",
+                          f"top camera: {pose.warning}" if pose.warning else
+                          "the holder's edges stay within the sensor's range (not clipped "
+                          "along all four sides)", name="clipped" if pose.warning else ""))
         assert self.tools is not None
         cam = self.rig.camera("top")
         assert cam is not None
