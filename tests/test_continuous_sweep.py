@@ -141,6 +141,31 @@ def test_continuous_sweep_recovers_the_offset_deterministically() -> None:
     assert again.readback_deg == data.readback_deg
 
 
+def test_a_continuous_sweep_counts_the_frames_the_tracker_warned_of() -> None:
+    """The tracker's warning (a holder clipped all round) on some frames reaches the
+    sweep's data, counted, as in a stop-and-go sweep."""
+    from dataclasses import replace
+
+    raw_cfg = continuous_config()
+    raw_cfg["sim"]["world"]["wobble_um"] = 0.0
+    cfg = parse_config(raw_cfg, "sim")
+    rig, _world = scene_rig(cfg, 3)
+    rig.connect()
+    base = standin_tools(3, sigma_px=0.01)
+    calls = [0]
+
+    def track(frame: Any) -> Any:
+        calls[0] += 1
+        c = base.track(frame)
+        return replace(c, warning="clipped all round") if calls[0] % 10 == 0 else c
+
+    data, _m, _w = measure(rig, cfg, replace(base, track=track), kind="measure", iteration=0,
+                           abort=None, progress=lambda _e: None, recorder=MemoryRecorder(),
+                           pixel_size_um=160.0, floor_um=0.0)
+    assert data.mode == "continuous"
+    assert data.warned_frames == calls[0] // 10 > 0 and data.warning == "clipped all round"
+
+
 def test_abort_mid_sweep_stops_the_table_and_restores_its_speed() -> None:
     cfg = parse_config(continuous_config(), "sim")
     rig, _world = scene_rig(cfg, 5)

@@ -565,3 +565,28 @@ def test_precheck_warns_when_the_tracker_flags_the_holder() -> None:
     res = run_check(rig, cfg, tools=replace(base, track=track), recorder=rec)
     assert res.details["warnings"].count(f"pre-check: top camera: {said}") == 1
     assert any(said in e and e.startswith("warning:") for e in rec.events)
+
+
+def test_a_sweep_whose_frames_carry_the_trackers_warning_says_so_once() -> None:
+    """A holder that clips only at some angles (a glint as it turns) passes the pre-check
+    clean; the sweep that sees it warns once a run, with how many of its frames did."""
+    from dataclasses import replace
+
+    cfg = sim_config()
+    rig, _world = scene_rig(cfg, 6)
+    base = standin_tools(6)
+    said = "the holder's edges clip along all four sides; lower the exposure"
+    calls = [0]
+
+    def track(frame: Any) -> Corners:
+        calls[0] += 1
+        c = base.track(frame)
+        return replace(c, warning=said) if calls[0] > 1 and calls[0] % 4 == 0 else c
+
+    res = run_alignment(rig, cfg, tools=replace(base, track=track))
+    sweeps = [w for w in res.details["warnings"] if said in w]
+    assert len(sweeps) == 1, res.details["warnings"]
+    head = sweeps[0].split(": ")[0]
+    assert head.endswith("sweep 1") and "top camera, " in sweeps[0]
+    k, n = (int(v) for v in sweeps[0].split("top camera, ")[1].split(" frame")[0].split(" of "))
+    assert 0 < k < n

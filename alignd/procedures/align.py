@@ -114,6 +114,7 @@ class _State:
     centre_jumps: int = 0  # sweeps whose centre disagreed with the pool (axis cannot move)
     map_disagree: int = 0  # consecutive sweeps whose centres disagreed with the runout map
     runout_refresh: dict[str, Any] | None = None  # what a refresh (or its refusal) found
+    sweep_warned: bool = False  # a sweep's frames carried the tracker's warning (said once)
 
 
 def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
@@ -311,11 +312,16 @@ class _Run:
             self.narrow = (p.center_px, p.cov_px2 + self._floor_px2(self.st.last))
             self.pool = CentrePool()
         self.pool_half = self.plan.half_deg
-        _data, m, warning = measure(
+        data, m, warning = measure(
             self.rig, self.cfg, self.tools, kind=kind, iteration=n, abort=self.abort,
             progress=self._progress_safe, recorder=self.recorder, pixel_size_um=px,
             pool=self.pool, floor_um=self.systematic_um, angle_map=self.angle_map,
             runout=self.runout, plan=self.plan, approach=self._approach())
+        if data.warned_frames and not self.st.sweep_warned:
+            # once a run: a holder clipped at some angles (a glint) says so in every sweep
+            self.st.sweep_warned = True
+            self._warn(f"{kind} sweep {n}: top camera, {data.warned_frames} of "
+                       f"{len(data.frame_hashes)} frame(s): {data.warning}")
         if warning:
             self._warn(warning)
             if "moved between sweeps" in warning:

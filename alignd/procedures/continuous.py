@@ -122,6 +122,7 @@ def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str
         except BaseException:
             tt.stop()  # never leave the table turning (and its speed can then be restored)
             raise
+    warned, warning = 0, ""
     for k, frame in enumerate(frames):
         check_abort(abort)
         t2 = time.perf_counter()
@@ -130,12 +131,16 @@ def run_continuous_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str
         hashes.append(recorder.frame(frame.image, f"{kind}-{iteration}-{k:03d}-0"))
         stamps.append(frame.timestamp)
         points.append(det.corners_px if det.ok else np.full((4, 2), np.nan))
+        if det.ok and det.warning:
+            warned += 1
+            warning = warning or det.warning
     prior = np.interp(stamps, samples_t, samples_a)
     log.info("%s sweep %d: %d frames over %.2f deg", kind, iteration, len(points),
              abs(end - start))
     return SweepData(kind, iteration, prior.tolist(), prior.tolist(),
                      np.array(points, float).reshape(-1, 4, 2), hashes, track_s=t_track,
-                     grab_s=t_grab, motion_s=t_motion, mode="continuous")
+                     grab_s=t_grab, motion_s=t_motion, mode="continuous",
+                     warned_frames=warned, warning=warning)
 
 
 def frame_angles(angles_deg: np.ndarray, points: np.ndarray) -> np.ndarray:

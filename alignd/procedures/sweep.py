@@ -258,6 +258,10 @@ class SweepData:
     grab_s: float = 0.0
     motion_s: float = 0.0
     mode: Literal["step", "continuous"] = "step"  # continuous: angles are priors
+    # frames tracked with the tracker's warning (a holder clipped all round: a glint may
+    # do it at some angles only), and the first such warning
+    warned_frames: int = 0
+    warning: str = ""
 
     @property
     def tracked(self) -> np.ndarray:
@@ -509,6 +513,7 @@ def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration
     readback: list[float] = []
     hashes: list[str] = []
     t_track = t_grab = t_motion = 0.0
+    warned, warning = 0, ""
     for i, a in enumerate(angles):
         check_abort(abort)
         t0 = time.perf_counter()
@@ -530,6 +535,9 @@ def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration
             hashes.append(recorder.frame(frame.image, f"{kind}-{iteration}-{i:03d}-{j}"))
             if det.ok:
                 found.append(det.corners_px)
+                if det.warning:
+                    warned += 1
+                    warning = warning or det.warning
             else:
                 why = det.reason or "no detection"
         if found:
@@ -542,7 +550,8 @@ def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration
                                + ("" if found else " (holder not found)"),
                                step=i + 1, total=n, iteration=iteration))
     data = SweepData(kind, iteration, [float(a) for a in angles], readback, points, hashes,
-                     track_s=t_track, grab_s=t_grab, motion_s=t_motion)
+                     track_s=t_track, grab_s=t_grab, motion_s=t_motion,
+                     warned_frames=warned, warning=warning)
     return data
 
 
