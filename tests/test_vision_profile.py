@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
+from alignd.vision import profile_fit
 from alignd.vision.edges import edge_points
 from alignd.vision.holder import order_corners, track_holder
 from alignd.vision.lens import Lens
@@ -44,7 +45,10 @@ def test_step_response_is_the_blurred_pixel_integral(angle_deg: float, blur: flo
 @pytest.mark.parametrize("blur", [0.5, 1.6])
 def test_noise_free_edge_has_no_bias(angle_deg: float, blur: float) -> None:
     """A straight edge with exact pixel-area coverage, blurred: the fitted crossings lie on
-    the true line (mean within 0.006 px, each within 0.03 px)."""
+    the true line (mean within 0.006 px, each within 0.035 px: the blur here is OpenCV's
+    kernel sampled on the pixel grid, not the optics' Gaussian the model assumes, which
+    at 0.5 px shows as a ripple with the edge's phase, 0.027 px at most under plain least
+    squares and 0.033 px with the clutter weights, which weigh the transition more)."""
     w, h = 400, 300
     ras = Raster((w, h), 400.0, (200.0, 150.0), 0.0)
     t = math.radians(angle_deg)
@@ -62,7 +66,7 @@ def test_noise_free_edge_has_no_bias(angle_deg: float, blur: float) -> None:
     assert fine.xy.shape[0] > 0.9 * pts.xy.shape[0]
     dist = (fine.xy - c) @ v  # signed distance from the true line
     assert abs(float(dist.mean())) < 0.006
-    assert float(np.abs(dist).max()) < 0.03
+    assert float(np.abs(dist).max()) < 0.035
 
 
 # measured: plain + 12-bit 0.024 px (area method alone 0.048), jpeg 0.027 (0.038)
@@ -295,3 +299,45 @@ def test_penumbra_beside_an_edge_moves_it_less(blur: float, bound: float) -> Non
     fine = fit_crossings(img, [pts])[0]
     assert fine.xy.shape[0] > 0.9 * pts.xy.shape[0]
     assert abs(float(fine.xy[:, 0].mean()) - x0) < bound
+
+
+def _textured_edge_scatter(trials: int, seed: int) -> float:
+    """The RMS distance of the fitted crossings from the true line: a 200 px edge of
+    40 DN contrast at 5-40 deg, blurred 1.6 px, over a smooth texture of 3 DN on both
+    sides (random values 8 px apart, cubic-interpolated: a floor's or a holder's grain
+    coarser than the blur), with 1 DN of sensor noise."""
+    rng = np.random.default_rng(seed)
+    w, h = 300, 220
+    ras = Raster((w, h), 120.0, (w / 2, h / 2), 0.0)
+    d2: list[float] = []
+    for _ in range(trials):
+        t = math.radians(float(rng.uniform(5.0, 40.0)))
+        c = np.array([w / 2, h / 2]) + rng.uniform(-0.5, 0.5, 2)
+        u = np.array([math.cos(t), math.sin(t)])
+        v = np.array([-u[1], u[0]])
+        poly = np.array([c - 400 * u, c + 400 * u, c + 400 * u + 400 * v,
+                         c - 400 * u + 400 * v])
+        grain = rng.standard_normal((h // 8 + 2, w // 8 + 2)).astype(np.float32)
+        tex = cv2.resize(grain, (w, h), interpolation=cv2.INTER_CUBIC)
+        img = 60.0 + 40.0 * coverage(Polygon(poly), ras, (0, 0, w, h)) + tex * np.float32(
+            3.0 / tex.std())
+        img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.6) + rng.normal(
+            0.0, 1.0, (h, w)).astype(np.float32)
+        img8 = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        pts = edge_points(img8, c - 100 * u, c + 100 * u, half_width=5, margin_px=0.0)
+        d2 += (((fit_crossings(img8, [pts])[0].xy - c) @ v) ** 2).tolist()
+    return math.sqrt(float(np.mean(d2)))
+
+
+def test_smooth_texture_moves_the_crossings_less(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A texture coarser than the blur bends a soft edge's window smoothly, which plain
+    least squares reads in part as a shift of the crossing; counted as correlated noise
+    (the clutter weights) it moves the crossings less: measured 0.171 px RMS, 0.209 px
+    with plain least squares (the same images)."""
+    assert _textured_edge_scatter(16, 5) < 0.19
+    monkeypatch.setattr(profile_fit, "_CLUTTER_RATIO", 0.0)
+    profile_fit._clutter_weights.cache_clear()
+    try:
+        assert _textured_edge_scatter(16, 5) > 0.19
+    finally:
+        profile_fit._clutter_weights.cache_clear()
