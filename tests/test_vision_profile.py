@@ -215,6 +215,20 @@ def test_soft_holder_keeps_its_refined_corners() -> None:
     assert err.max() < 0.07, err
 
 
+def _half_plane(rng: np.random.Generator, ras: Raster
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A straight edge through the frame's centre (+-0.5 px) at 5-40 deg, the bright
+    side's pixel coverage drawn exactly: a point on the edge, its direction u, its normal
+    v (toward the covered side) and the coverage."""
+    w, h = ras.w, ras.h
+    t = math.radians(float(rng.uniform(5.0, 40.0)))
+    c = np.array([w / 2, h / 2]) + rng.uniform(-0.5, 0.5, 2)
+    u = np.array([math.cos(t), math.sin(t)])
+    v = np.array([-u[1], u[0]])
+    poly = np.array([c - 400 * u, c + 400 * u, c + 400 * u + 400 * v, c - 400 * u + 400 * v])
+    return c, u, v, coverage(Polygon(poly), ras, (0, 0, w, h))
+
+
 def _soft_edge_offsets(blur: float, slope: float, trials: int, seed: int) -> np.ndarray:
     """The mean signed offset of the fitted crossings from the true line, per noise
     realisation, of a 220 px edge of 40 DN contrast at 5-40 deg, blurred ``blur`` px,
@@ -226,13 +240,7 @@ def _soft_edge_offsets(blur: float, slope: float, trials: int, seed: int) -> np.
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
     out = []
     for _ in range(trials):
-        t = math.radians(float(rng.uniform(5.0, 40.0)))
-        c = np.array([w / 2, h / 2]) + rng.uniform(-0.5, 0.5, 2)
-        u = np.array([math.cos(t), math.sin(t)])
-        v = np.array([-u[1], u[0]])
-        poly = np.array([c - 400 * u, c + 400 * u, c + 400 * u + 400 * v,
-                         c - 400 * u + 400 * v])
-        cov = coverage(Polygon(poly), ras, (0, 0, w, h))
+        c, u, v, cov = _half_plane(rng, ras)
         d = (xx - c[0]) * v[0] + (yy - c[1]) * v[1]
         img = (60.0 + 40.0 * cov + cov * np.float32(slope) * d).astype(np.float32)
         img = cv2.GaussianBlur(img, (0, 0), blur) + rng.normal(0.0, 2.0, (h, w)).astype(
@@ -311,16 +319,10 @@ def _textured_edge_scatter(trials: int, seed: int) -> float:
     ras = Raster((w, h), 120.0, (w / 2, h / 2), 0.0)
     d2: list[float] = []
     for _ in range(trials):
-        t = math.radians(float(rng.uniform(5.0, 40.0)))
-        c = np.array([w / 2, h / 2]) + rng.uniform(-0.5, 0.5, 2)
-        u = np.array([math.cos(t), math.sin(t)])
-        v = np.array([-u[1], u[0]])
-        poly = np.array([c - 400 * u, c + 400 * u, c + 400 * u + 400 * v,
-                         c - 400 * u + 400 * v])
+        c, u, v, cov = _half_plane(rng, ras)
         grain = rng.standard_normal((h // 8 + 2, w // 8 + 2)).astype(np.float32)
         tex = cv2.resize(grain, (w, h), interpolation=cv2.INTER_CUBIC)
-        img = 60.0 + 40.0 * coverage(Polygon(poly), ras, (0, 0, w, h)) + tex * np.float32(
-            3.0 / tex.std())
+        img = 60.0 + 40.0 * cov + tex * np.float32(3.0 / tex.std())
         img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.6) + rng.normal(
             0.0, 1.0, (h, w)).astype(np.float32)
         img8 = np.clip(np.rint(img), 0, 255).astype(np.uint8)
