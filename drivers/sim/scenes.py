@@ -566,9 +566,12 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
         img += spec
     img *= light
     blur = float(rng.uniform(0.8, 2.0)) if optics else float(rng.uniform(0.3, 1.0))
-    out = _finish(img, rng, blur=blur, read_noise=float(rng.uniform(0.5, 2.5)),
-                  electrons_per_dn=float(rng.uniform(20, 80)), enc=enc)
-    params["blur_px"] = blur
+    read_noise = float(rng.uniform(0.5, 2.5))  # (drawn in this order: the corpus stays)
+    electrons_per_dn = float(rng.uniform(20, 80))
+    out = _finish(img, rng, blur=blur, read_noise=read_noise,
+                  electrons_per_dn=electrons_per_dn, enc=enc)
+    # the sensor's noise model (8-bit DN), as bench/corner_bound.py's bound needs it
+    params.update(blur_px=blur, read_noise_dn=read_noise, electrons_per_dn=electrons_per_dn)
     return TopSceneSample(out, cat, corners, (max(L_mm, S_mm), min(L_mm, S_mm)), px_um, pol,
                           (focal, principal, k1) if k1 else None, enc, params)
 
@@ -740,6 +743,7 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     params["blur_px"] = blur
     noise = {"read_noise": float(rng.uniform(0.5, 2.0)),
              "electrons_per_dn": float(rng.uniform(40, 150))}
+    params.update(read_noise_dn=noise["read_noise"], electrons_per_dn=noise["electrons_per_dn"])
     out = _finish(img, rng, blur=0.0, enc=enc, **noise)
     # more frames of the same view: their own noise (and coding) from child generators,
     # so that the scenes drawn after this one do not depend on how many frames were asked;
