@@ -4,27 +4,18 @@ raw frames, coding error the frames share on JPEG ones; docs/vision.md)."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import pytest
+from bench_modules import load_bench
 
 from alignd.config import PrecheckConfig
-
-_BENCH = Path(__file__).resolve().parents[1] / "bench" / "vision.py"
 
 
 @pytest.fixture(scope="module")
 def bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_vision", _BENCH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_vision"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("vision")
 
 
 def test_side_rows_average_the_frames_asked_for_and_split_by_coding(

@@ -4,30 +4,21 @@ edge's angle are bounds the vision comes near on frames drawn exactly as its mod
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
+from bench_modules import load_bench
 from scipy.special import ndtr
 
 from alignd.vision.edge_profile import fit_vertical_edge
 from alignd.vision.holder import order_corners, track_holder
 
-_BENCH = Path(__file__).resolve().parents[1] / "bench" / "vision_bounds.py"
-
 
 @pytest.fixture(scope="module")
 def bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_vision_bounds", _BENCH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_vision_bounds"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("vision_bounds")
 
 
 def _rectangle(blur: float, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
