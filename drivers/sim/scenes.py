@@ -570,7 +570,7 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
     electrons_per_dn = float(rng.uniform(20, 80))
     out = _finish(img, rng, blur=blur, read_noise=read_noise,
                   electrons_per_dn=electrons_per_dn, enc=enc)
-    # the sensor's noise model (8-bit DN), as bench/corner_bound.py's bound needs it
+    # the sensor's noise model (8-bit DN), as bench/vision_bounds.py's bound needs it
     params.update(blur_px=blur, read_noise_dn=read_noise, electrons_per_dn=electrons_per_dn)
     return TopSceneSample(out, cat, corners, (max(L_mm, S_mm), min(L_mm, S_mm)), px_um, pol,
                           (focal, principal, k1) if k1 else None, enc, params)
