@@ -64,6 +64,37 @@ def pixel_variance(gray: np.ndarray, read_noise_dn: float, electrons_per_dn: flo
     return read_noise_dn ** 2 + np.clip(gray, 0.0, None) / electrons_per_dn + q * q / 12.0
 
 
+def _spread(blur_px: float) -> float:
+    """A blurred step's width across a pixel grid: the blur and the pixel's footprint."""
+    return math.sqrt(blur_px ** 2 + 1.0 / 12.0)
+
+
+def _crossing_information(d: np.ndarray, values: np.ndarray, var: np.ndarray, se: float,
+                          factor: np.ndarray | float = 1.0, free_slopes: bool = False
+                          ) -> float:
+    """The Fisher information on an edge's crossing from one window across it: the
+    pixels at signed distances ``d`` (px, positive on the edge's far side), their values
+    and noise variances, a step of width ``se`` (times ``factor``: a neighbouring edge's
+    step); the window's level and step height (with ``free_slopes`` also a slope on
+    either side) profiled out. The step height is read from the tails' medians; 0 where
+    the window has no tail on a side or its model is degenerate."""
+    step = ndtr(d / se) * factor
+    d_step = -np.exp(-0.5 * (d / se) ** 2) / (se * _SQRT_2PI) * factor
+    far, near = d > 2.5 * se + 1.0, d < -2.5 * se - 1.0
+    if not far.any() or not near.any():
+        return 0.0
+    contrast = float(np.median(values[far]) - np.median(values[near]))
+    cols = [np.ones(d.size), step] + ([d, d * step] if free_slopes else [])
+    g = np.column_stack([*cols, contrast * d_step])
+    fisher = (g / var[:, None]).T @ g
+    k = fisher.shape[0] - 1
+    try:
+        return float(fisher[k, k]
+                     - fisher[k, :k] @ np.linalg.solve(fisher[:k, :k], fisher[:k, k]))
+    except np.linalg.LinAlgError:
+        return 0.0
+
+
 def _side_information(gray: np.ndarray, var: np.ndarray, sides: list[tuple], k: int,
                       blur_px: float) -> np.ndarray:
     """The 2 x 2 Fisher information of side k's (normal offset, rotation about its
@@ -73,7 +104,7 @@ def _side_information(gray: np.ndarray, var: np.ndarray, sides: list[tuple], k: 
     prev, nxt = sides[(k - 1) % 4], sides[(k + 1) % 4]
     horizontal = abs(t[0]) >= abs(t[1])
     nu = abs(n[1]) if horizontal else abs(n[0])  # |normal . minor axis|
-    se = math.sqrt(blur_px ** 2 + 1.0 / 12.0)  # the blur and the pixel's footprint
+    se = _spread(blur_px)
     hw = math.ceil((3.0 * se + 0.5) / nu) + 3
     h, w = gray.shape
     j = np.arange(-hw, hw + 1)
@@ -95,19 +126,7 @@ def _side_information(gray: np.ndarray, var: np.ndarray, sides: list[tuple], k: 
             continue
         nb = prev if along < length / 2 else nxt
         f = ndtr(((p - nb[0]) @ nb[4]) / se)  # the neighbour's step (1 inside the holder)
-        step = ndtr(d1 / se) * f
-        d_step = -np.exp(-0.5 * (d1 / se) ** 2) / (se * _SQRT_2PI) * f  # d step / d offset
-        inner, outer = d1 > 2.5 * se + 1.0, d1 < -2.5 * se - 1.0
-        if not inner.any() or not outer.any():
-            continue
-        contrast = float(np.median(gray[ys[inner], xs[inner]])
-                         - np.median(gray[ys[outer], xs[outer]]))
-        g = np.column_stack([np.ones(j.size), step, contrast * d_step])
-        fisher = (g / var[ys, xs][:, None]).T @ g
-        try:
-            i_off = fisher[2, 2] - fisher[2, :2] @ np.linalg.solve(fisher[:2, :2], fisher[:2, 2])
-        except np.linalg.LinAlgError:
-            continue
+        i_off = _crossing_information(d1, gray[ys, xs], var[ys, xs], se, f)
         r = along - length / 2
         info += i_off * np.array([[1.0, r], [r, r * r]])
     return info
@@ -170,9 +189,7 @@ def corpus_bound(n: int, seed: int) -> dict[str, tuple[list[float], list[float]]
         if err.max() > 1.0:
             continue
         gray = as_gray(sc.image, "top image")
-        full = 255.0 if sc.encoding.bits == 8 else 4095.0
-        var = pixel_variance(gray, _num(sc.params, "read_noise_dn"),
-                             _num(sc.params, "electrons_per_dn"), full)
+        var = _scene_variance(gray, sc.params, sc.encoding.bits)
         bound = corner_bound(gray, truth, _num(sc.params, "blur_px"), var)
         for key in (cat, "total"):
             e2, b2 = out.setdefault(key, ([], []))
@@ -186,23 +203,13 @@ def _row_information(gray: np.ndarray, var: np.ndarray, y: int, x: float, blur_p
     """The information on a near-vertical edge's crossing x in image row y, its level and
     step height (and with ``free_slopes`` the slopes on either side) profiled out; 0
     where the window leaves the frame or has no tail."""
-    se = math.sqrt(blur_px ** 2 + 1.0 / 12.0)
+    se = _spread(blur_px)
     hw = math.ceil(3.0 * se + 0.5) + 3
     xs = round(x) + np.arange(-hw, hw + 1)
     if xs.min() < 0 or xs.max() >= gray.shape[1]:
         return 0.0
-    d = xs - x
-    step = ndtr(d / se)
-    d_step = -np.exp(-0.5 * (d / se) ** 2) / (se * _SQRT_2PI)
-    left, right = d < -2.5 * se - 1.0, d > 2.5 * se + 1.0
-    if not left.any() or not right.any():
-        return 0.0
-    contrast = float(np.median(gray[y, xs[right]]) - np.median(gray[y, xs[left]]))
-    cols = [np.ones(d.size), step] + ([d, d * step] if free_slopes else [])
-    g = np.column_stack([*cols, contrast * d_step])
-    fisher = (g / var[y, xs][:, None]).T @ g
-    k = fisher.shape[0] - 1
-    return float(fisher[k, k] - fisher[k, :k] @ np.linalg.solve(fisher[:k, :k], fisher[:k, k]))
+    return _crossing_information(xs - x, gray[y, xs], var[y, xs], se,
+                                 free_slopes=free_slopes)
 
 
 def edge_angle_bound(gray: np.ndarray, var: np.ndarray, x_mid: float, y_mid: float,
@@ -229,6 +236,12 @@ def _num(params: dict[str, object], key: str) -> float:
     if not isinstance(v, (int, float)):
         raise TypeError(f"scene parameter {key}: {v!r} is not a number")
     return float(v)
+
+
+def _scene_variance(gray: np.ndarray, params: dict[str, object], bits: int) -> np.ndarray:
+    """A corpus frame's pixel variances from the noise model its scene recorded."""
+    return pixel_variance(gray, _num(params, "read_noise_dn"),
+                          _num(params, "electrons_per_dn"), 255.0 if bits == 8 else 4095.0)
 
 
 def _tilt_bound(gray: np.ndarray, var: np.ndarray, blur_px: float, m: SideMeasurement,
@@ -267,9 +280,7 @@ def corpus_side_bound(n: int, seed: int, frames: int = 8
         if not first.sample_edges or not first.pole_edges:
             continue
         gray = as_gray(sc.frames[0], "side image")
-        full = 255.0 if sc.encoding.bits == 8 else 4095.0
-        var = pixel_variance(gray, _num(sc.params, "read_noise_dn"),
-                             _num(sc.params, "electrons_per_dn"), full)
+        var = _scene_variance(gray, sc.params, sc.encoding.bits)
         blur = _num(sc.params, "blur_px")
         bounds = [_tilt_bound(gray, var, blur, first, sc.sample_angle_deg,
                               sc.pole_angle_deg, free) for free in (True, False)]
