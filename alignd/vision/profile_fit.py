@@ -437,6 +437,7 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     plain = np.zeros(P.shape[0], bool)
     if bend is not None:
         plain = np.any(bend[0] != 0, axis=0) | np.any(bend[1] != 0, axis=0)
+    any_plain = bool(plain.any())
     w1 = np.where(plain[None, :], 1.0, (W @ ones)[:, None])
     m: float | np.ndarray = ones @ w1
     for _ in range(iterations):
@@ -453,7 +454,8 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         g = -nu * amp * S1
         if clipped is None:
             WS, Wg = W @ S, W @ g
-            WS[:, plain], Wg[:, plain] = S[:, plain], g[:, plain]
+            if any_plain:
+                WS[:, plain], Wg[:, plain] = S[:, plain], g[:, plain]
             sS, sg = ones @ WS, ones @ Wg  # (W is symmetric: 1' W S)
             sSS, sSg, sgg = ones @ (S * WS), ones @ (S * Wg), ones @ (g * Wg)
             r0, rS, rg = ones @ (w1 * r), ones @ (r * WS), ones @ (r * Wg)
@@ -535,6 +537,13 @@ def _censored(clipped: tuple[np.ndarray, np.ndarray], r: np.ndarray) -> np.ndarr
 
 
 _MIN_GAP = 4.0  # px along an edge from its corner: the closest any position window reaches
+# the corner clearance in blur widths: at 2 widths the neighbour's blurred step has 2.3 %
+# of its height left in the nearest window pixel (0.6 % at 2.5), and the end columns, the
+# corners' lever, reach half a width further on a soft side. Corpus corners, uncompressed
+# (px): bench seed 0.0352 at 2.5, 0.0347 at 2 and at 1.5, 0.0346 at 1; seed 177 (raw and
+# JPEG) 0.0366 / 0.0361 / 0.0359 at 2.5 / 2 / 1.5. Our renderer's sides (blur 0.6 px) are
+# held by _MIN_GAP either way
+_CLEAR_BLUR = 2.0
 
 
 def _corner_clearance(blur: np.ndarray, slope: np.ndarray, nu: np.ndarray, hw: int
@@ -544,15 +553,6 @@ def _corner_clearance(blur: np.ndarray, slope: np.ndarray, nu: np.ndarray, hw: i
     transition: _CLEAR_BLUR blur widths and a pixel from the nearest window pixel, which a
     tilted edge's window brings hw |sin| nearer the neighbour (a perpendicular side)."""
     return np.maximum(_MIN_GAP, _CLEAR_BLUR * blur + 1.0 + hw * np.abs(slope) * nu)
-
-
-# the corner clearance in blur widths: at 2 widths the neighbour's blurred step has 2.3 %
-# of its height left in the nearest window pixel (0.6 % at 2.5), and the end columns, the
-# corners' lever, reach half a width further on a soft side. Corpus corners, uncompressed
-# (px): bench seed 0.0352 at 2.5, 0.0347 at 2 and at 1.5, 0.0346 at 1; seed 177 (raw and
-# JPEG) 0.0366 / 0.0361 / 0.0359 at 2.5 / 2 / 1.5. Our renderer's sides (blur 0.6 px) are
-# held by _MIN_GAP either way
-_CLEAR_BLUR = 2.0
 
 
 def _line_through(t: np.ndarray, c: np.ndarray) -> tuple[float, float, float]:
