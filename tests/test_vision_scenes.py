@@ -113,6 +113,31 @@ def test_previous_corners_seed_tracking_and_order() -> None:
     np.testing.assert_allclose(det.corners_px, hint + np.array([-4.0, 3.0]), atol=0.05)
 
 
+def test_a_small_holder_in_a_large_frame_is_found_not_called_blank() -> None:
+    """A 2592 x 1944 px camera sees a 150 x 80 px holder: 0.24 % of the frame. The frame is
+    not blank (a 1-99 % pixel range called it so), the holder is found; the same frame
+    without the holder is still refused as blank, with the reason."""
+    w, h = 2592, 1944
+    ras = Raster((w, h), 3000.0, (w / 2, h / 2), 0.0)
+    t = np.radians(12.0)
+    u, v = np.array([np.cos(t), np.sin(t)]), np.array([-np.sin(t), np.cos(t)])
+    c0 = np.array([2101.3, 412.8])
+    truth = np.array([c0 - u * 75 - v * 40, c0 + u * 75 - v * 40, c0 + u * 75 + v * 40,
+                      c0 - u * 75 + v * 40])
+    rng = np.random.default_rng(3)
+    floor = np.full((h, w), 60.0, np.float32)
+    img = floor + (190.0 - floor) * coverage(Polygon(truth), ras, (0, 0, w, h))
+
+    def frame(a: np.ndarray) -> np.ndarray:
+        return np.clip(np.rint(a + rng.normal(0, 2.0, a.shape)), 0, 255).astype(np.uint8)
+
+    det = track_holder(frame(img), expected_size_px=(150.0, 80.0))
+    assert det.ok, det.reason
+    assert _corner_errors(det.corners_px, truth).max() < 0.05
+    with pytest.raises(VisionError, match="blank image"):
+        track_holder(frame(floor), expected_size_px=(150.0, 80.0))
+
+
 @pytest.mark.parametrize("msb", [False, True])
 def test_twelve_bit_in_sixteen_matches_eight_bit(msb: bool) -> None:
     img, big, _ = _two_rectangles()
@@ -130,6 +155,18 @@ def test_side_regions_of_interest(seed: int, cat: str) -> None:
     sc = random_side_scene(np.random.default_rng(seed), cat)
     m = measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
     assert m.mode == "roi"
+    assert m.sample_edges[0].x_mid_px == pytest.approx(sc.near_x_px, abs=1.0)
+    assert m.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.01)
+
+
+@pytest.mark.parametrize("cat", SIDE_CATEGORIES)
+def test_side_scene_in_a_narrow_frame(cat: str) -> None:
+    """A 640 x 480 px side camera: the scene's pole, gap and sample (up to 750 px across at
+    1280 px) shrink to fit, and the tilt is measured in the regions a config gives."""
+    sc = random_side_scene(np.random.default_rng(9), cat, size_px=(640, 480))
+    assert sc.image.shape == (480, 640)
+    assert all(60 <= x <= 580 for x in sc.sample_x_px)
+    m = measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
     assert m.sample_edges[0].x_mid_px == pytest.approx(sc.near_x_px, abs=1.0)
     assert m.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.01)
 

@@ -655,6 +655,10 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     ws = float(rng.uniform(max(3 * wp, 60), 350))
     gap = float(rng.uniform(2 * wp + 20, 350))
     total = wp + gap + ws
+    if total > w - 120:  # a narrow frame (under about 870 px): the gap and the sample
+        k = (0.9 * (w - 120) - wp) / (gap + ws)  # shrink (a 1280 px frame always fits)
+        gap, ws = gap * k, ws * k
+        total = wp + gap + ws
     x_left = float(rng.uniform(60, w - 60 - total))
     pole_left = rng.random() < 0.5
     if pole_left:
