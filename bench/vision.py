@@ -7,6 +7,7 @@ randomised corpus of scenes we did not draw for the vision (drivers.sim.scenes).
     python bench/vision.py --only rim --rim-scenes 1000   # the rim alone, more scenes
     python bench/vision.py --only rim --rim-turn-deg 22.5 # rim frames at 8 turntable angles
     python bench/vision.py --only side --tilt-frames 16   # the side pre-check over 16 frames
+    python bench/vision.py --only top --size 1920x1080    # the corpus at your camera's size
 
 Part 1, our renderer (the rig's simulated cameras): read noise 2 DN, 8-bit, defocus blur
 0.6 px, a lighting gradient of 20 % across the width and 10 % across the height, holder
@@ -250,6 +251,25 @@ def speed(n: int) -> dict[str, float]:
 Row = tuple[str, ...]
 
 
+FRAME = (1280, 720)  # the corpus' frame size (px) unless --size says otherwise
+
+
+def _frame_size(text: str) -> tuple[int, int]:
+    """--size: "WxH" in px, from 640 x 480 (the corpus' poles are up to 50 px wide, and
+    the automatic side mode takes a pole to be at most a tenth of the frame across)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not WxH, e.g. 1920x1080") from None
+    if w < 640 or h < 480:
+        raise argparse.ArgumentTypeError(f"{text!r}: 640x480 px at least")
+    return w, h
+
+
+def _size_note(size_px: tuple[int, int]) -> str:
+    return "" if size_px == FRAME else f", {size_px[0]} x {size_px[1]} px frames"
+
+
 def _rms(v: list[float]) -> float:
     return float(np.sqrt(np.mean(np.square(v)))) if v else math.nan
 
@@ -258,8 +278,10 @@ def _f(v: float, nd: int = 4) -> str:
     return f"{v:.{nd}f}" if math.isfinite(v) else "-"
 
 
-def corpus_top(n: int, seed: int) -> tuple[list[Row], dict[str, float]]:
-    """n randomised top scenes, the categories in turn: found, wrong, corner RMS, time."""
+def corpus_top(n: int, seed: int, size_px: tuple[int, int] = FRAME
+               ) -> tuple[list[Row], dict[str, float]]:
+    """n randomised top scenes of ``size_px`` frames, the categories in turn: found, wrong,
+    corner RMS, time."""
     rng = np.random.default_rng(seed)
     per: dict[str, dict[str, list[float]]] = {}
     groups: dict[str, list[float]] = {"uncompressed": [], "JPEG q >= 80": [], "JPEG q < 80": []}
@@ -268,7 +290,7 @@ def corpus_top(n: int, seed: int) -> tuple[list[Row], dict[str, float]]:
     misses: list[str] = []
     for i in range(n):
         cat = TOP_CATEGORIES[i % len(TOP_CATEGORIES)]
-        sc = random_top_scene(rng, cat)
+        sc = random_top_scene(rng, cat, size_px)
         lens = Lens(sc.lens[0], sc.lens[1], sc.lens[2]) if sc.lens else None
         d = per.setdefault(cat, {"n": [], "found": [], "wrong": [], "err": []})
         d["n"].append(1)
@@ -329,8 +351,8 @@ TILT_MAX_FRAMES = PrecheckConfig().tilt_max_frames
 
 
 def corpus_side(n: int, seed: int, frames: int = TILT_FRAMES,
-                u_target: float | None = TILT_U_TARGET, max_frames: int = TILT_MAX_FRAMES
-                ) -> tuple[list[Row], dict[str, float]]:
+                u_target: float | None = TILT_U_TARGET, max_frames: int = TILT_MAX_FRAMES,
+                size_px: tuple[int, int] = FRAME) -> tuple[list[Row], dict[str, float]]:
     """n randomised side views, with the config's regions and without. Each view comes as
     ``frames`` frames with their own noise (and coding), as a camera streams them, and
     more on demand; the per-frame rows score the first frame alone (:func:`measure_tilt`),
@@ -348,7 +370,7 @@ def corpus_side(n: int, seed: int, frames: int = TILT_FRAMES,
     taken: dict[str, list[int]] = {"ROI": [], "auto": []}
     for i in range(n):
         cat = SIDE_CATEGORIES[i % len(SIDE_CATEGORIES)]
-        sc = random_side_scene(rng, cat, frames=frames)
+        sc = random_side_scene(rng, cat, size_px, frames=frames)
         q = sc.encoding.jpeg_quality
         band = ("not JPEG" if q is None else "JPEG q < 80" if q < 80
                 else "JPEG q 80-89" if q < 90 else "JPEG q >= 90")
@@ -467,7 +489,8 @@ def _rim_table(per: dict[str, dict[str, list[float]]], tag: str
                   "max_all": max(map(abs, errs_all), default=math.nan)}
 
 
-def corpus_rim(n: int, seed: int, frames: int = RIM_FRAMES, turn_deg: float = 0.0
+def corpus_rim(n: int, seed: int, frames: int = RIM_FRAMES, turn_deg: float = 0.0,
+               size_px: tuple[int, int] = FRAME
                ) -> tuple[list[Row], dict[str, float], dict[str, float]]:
     """n randomised rim scenes, the categories in turn, each as ``frames`` frames with
     their own noise (and coding): one frame (:func:`fit_rim` on the first) and the
@@ -484,7 +507,7 @@ def corpus_rim(n: int, seed: int, frames: int = RIM_FRAMES, turn_deg: float = 0.
     pre: dict[str, dict[str, list[float]]] = {}
     for i in range(n):
         cat = RIM_CATEGORIES[i % len(RIM_CATEGORIES)]
-        sc = random_rim_scene(rng, cat, frames=frames, turn_deg=turn_deg)
+        sc = random_rim_scene(rng, cat, size_px, frames=frames, turn_deg=turn_deg)
         for per, tag, images in ((one, "1", sc.frames[:1]), (pre, f"x{frames}", sc.frames)):
             d = per.setdefault(cat, {"n": [], "found": [], "uncertain": [], "err": [],
                                      "err_all": [], "pull": []})
@@ -550,9 +573,9 @@ def side_rows(n_side: int, seed: int) -> list[Part1Row]:
     return rows
 
 
-def print_top(c_top: int, seed: int) -> dict[str, float]:
-    t_rows, ts = corpus_top(c_top, seed)
-    print(f"\nrandomised top scenes (holder corners; {ts['n']} scenes)")
+def print_top(c_top: int, seed: int, size_px: tuple[int, int] = FRAME) -> dict[str, float]:
+    t_rows, ts = corpus_top(c_top, seed, size_px)
+    print(f"\nrandomised top scenes (holder corners; {ts['n']} scenes{_size_note(size_px)})")
     print_table(("category", "n", "found %", "wrong", "corner RMS px", "max px"), t_rows)
     return ts
 
@@ -574,13 +597,14 @@ def top_targets(ts: dict[str, float]) -> list[Target]:
 
 
 def print_side(c_side: int, seed: int, frames: int = TILT_FRAMES,
-               u_target: float | None = TILT_U_TARGET, max_frames: int = TILT_MAX_FRAMES
-               ) -> dict[str, float]:
-    s_rows, ss = corpus_side(c_side, seed, frames, u_target, max_frames)
+               u_target: float | None = TILT_U_TARGET, max_frames: int = TILT_MAX_FRAMES,
+               size_px: tuple[int, int] = FRAME) -> dict[str, float]:
+    s_rows, ss = corpus_side(c_side, seed, frames, u_target, max_frames, size_px)
     more = "" if u_target is None else f", more while u > {u_target:g} deg (up to {max_frames})"
     pre = (f"'x{frames}{'+' if more else ''}': the pre-check, the mean of {frames} frames of "
            f"the view with their own noise{more}")
-    print(f"\nrandomised side scenes (tilt; {c_side} views, each with and without regions; "
+    print(f"\nrandomised side scenes (tilt; {c_side} views{_size_note(size_px)}, each with "
+          "and without regions; "
           f"'ROI'/'auto': one frame; {pre})")
     print_table(("mode: category", "n", "found %", "wrong edge", "tilt RMS deg",
                  "max deg", "RMS err/u"), s_rows)
@@ -611,11 +635,12 @@ def side_targets(ss: dict[str, float], frames: int = TILT_FRAMES,
     ]
 
 
-def print_rim(c_rim: int, seed: int, turn_deg: float = 0.0
+def print_rim(c_rim: int, seed: int, turn_deg: float = 0.0, size_px: tuple[int, int] = FRAME
               ) -> tuple[dict[str, float], dict[str, float]]:
-    r_rows, s1, s_pre = corpus_rim(c_rim, seed, turn_deg=turn_deg)
+    r_rows, s1, s_pre = corpus_rim(c_rim, seed, turn_deg=turn_deg, size_px=size_px)
     turned = f", the turntable turned {turn_deg:g} deg between frames" if turn_deg else ""
-    print(f"\nrandomised rim scenes (eccentricity 0.01-0.2; {c_rim} scenes; '1': one frame, "
+    print(f"\nrandomised rim scenes (eccentricity 0.01-0.2; {c_rim} scenes"
+          f"{_size_note(size_px)}; '1': one frame, "
           f"'x{RIM_FRAMES}': the pre-check, the mean of {RIM_FRAMES} frames of the view"
           f"{turned}; "
           f"errors over the fits whose e is certain to {RIM_E_STD:g}, 'max, all' over every "
@@ -705,6 +730,9 @@ def main(argv: list[str] | None = None) -> int:
                          "tilt_u_target_deg's default; 0: never more)")
     ap.add_argument("--tilt-max-frames", type=int, default=TILT_MAX_FRAMES,
                     help=f"... up to this many (default {TILT_MAX_FRAMES})")
+    ap.add_argument("--size", type=_frame_size, default=FRAME, metavar="WxH",
+                    help="the corpus' frame size in px (default 1280x720): try your "
+                         "camera's; part 1 keeps the simulated rig's cameras")
     args = ap.parse_args(argv)
     want = {args.only} if args.only else {"top", "side", "rim"}
     n_top = 4 if args.quick else 40
@@ -729,14 +757,15 @@ def main(argv: list[str] | None = None) -> int:
     print("\nPart 2: randomised scenes")
     targets: list[Target] = []
     if "top" in want:
-        targets += top_targets(print_top(c_top, args.seed + 100))
+        targets += top_targets(print_top(c_top, args.seed + 100, args.size))
     if "side" in want:
         u_target = args.tilt_u_target or None
         targets += side_targets(print_side(c_side, args.seed + 200, args.tilt_frames,
-                                           u_target, args.tilt_max_frames),
+                                           u_target, args.tilt_max_frames, args.size),
                                 args.tilt_frames, u_target)
     if "rim" in want:
-        targets += rim_targets(print_rim(c_rim, args.seed + 300, args.rim_turn_deg),
+        targets += rim_targets(print_rim(c_rim, args.seed + 300, args.rim_turn_deg,
+                                         args.size),
                                args.rim_turn_deg)
     print_targets(targets)
     return 0

@@ -50,3 +50,16 @@ def test_side_rows_take_frames_as_the_pre_check_does(bench: ModuleType) -> None:
     frames_row = [t for t in bench.side_targets(summary, 3, 1e-6)
                   if t[0].startswith("side: pre-check frames")]
     assert frames_row and frames_row[0][1] == "6.0, 6 (2) / 6.0, 6 (2)"
+
+
+def test_frame_size_option(bench: ModuleType) -> None:
+    """--size WxH: the corpus drawn at a camera's own frame size; nonsense refused."""
+    import argparse
+
+    assert bench._frame_size("1920x1080") == (1920, 1080)
+    assert bench._frame_size("640X480") == (640, 480)
+    for bad in ("1920", "axb", "320x240", "640x400"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            bench._frame_size(bad)
+    rows, summary = bench.corpus_top(2, 2124, (640, 480))
+    assert summary["n"] == 2 and summary["found"] == 1.0
