@@ -4,6 +4,7 @@ raw frames, coding error the frames share on JPEG ones; docs/vision.md)."""
 
 from __future__ import annotations
 
+import argparse
 import math
 from types import ModuleType
 
@@ -54,12 +55,10 @@ def test_side_rows_take_frames_as_the_pre_check_does(bench: ModuleType) -> None:
 
 def test_frame_size_option(bench: ModuleType) -> None:
     """--size WxH: the corpus drawn at a camera's own frame size; nonsense refused."""
-    import argparse
-
     assert bench._frame_size("1920x1080") == (1920, 1080)
     assert bench._frame_size("640X480") == (640, 480)
     for bad in ("1920", "axb", "320x240", "640x400"):
         with pytest.raises(argparse.ArgumentTypeError):
             bench._frame_size(bad)
-    rows, summary = bench.corpus_top(2, 2124, (640, 480))
+    _rows, summary = bench.corpus_top(2, 2124, (640, 480))
     assert summary["n"] == 2 and summary["found"] == 1.0
