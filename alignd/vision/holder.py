@@ -76,6 +76,12 @@ _CLIP_SHARE = 0.2
 _CLIP_AGREE_PX = 0.3
 # a side clipped in more than this share of its crossings counts toward clip_warning
 _SATURATED_SHARE = 0.5
+# a detection the edge profiles disagreed with, kept on the area method's corners, is
+# refused when those are uncertain beyond this (px; see _finish)
+_AREA_ALONE_SIGMA_PX = 0.3
+# opposite sides whose fitted edge widths differ by more than this (px) and this factor
+# cannot be one flat face's (see _unlike_opposite_blurs)
+_BLUR_UNLIKE_PX, _BLUR_UNLIKE_RATIO = 1.2, 3.0
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 _WIDE = 9
@@ -351,8 +357,8 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
     c = np.asarray(det.corners_px, float)
     lengths = _side_lengths(c)
     along, across = float(lengths[k]), float(lengths[(k + 1) % 4] + lengths[k - 1]) / 2
-    want = min(expected_size_px) if along >= across else max(expected_size_px)
-    if abs(across - step.depth_px - want) >= abs(across - want):
+    if (_size_misfit((along, across - step.depth_px), expected_size_px)
+            >= _size_misfit((along, across), expected_size_px)):
         return det  # the inner step lies across the holder: the side is where it should be
     moved = c.copy()
     moved[[k, (k + 1) % 4]] += step.depth_px * np.asarray(step.inward)
@@ -367,9 +373,15 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
     if again.ok and inner_step(gray, again.corners_px) is None:
         log.debug("top image: %s; measured at the inner step instead", why)
         return again
-    return replace(det, ok=False, corners_px=np.full((4, 2), np.nan),
-                   center_px=np.full(2, np.nan), angle_deg=math.nan, quality=0.0,
-                   corner_ok=np.zeros(4, bool), size_px=(math.nan, math.nan), reason=why)
+    return _not_ok(replace(det, reason=""), why)
+
+
+def _size_misfit(size: tuple[float, float], expected: tuple[float, float]) -> float:
+    """How far a rectangle's sides are off the expected ones: the larger relative error,
+    long side to long side (a nearly square holder with a plate along one side makes a
+    rectangle whose longer side is the plate's way)."""
+    (a, b), (ea, eb) = sorted(size, reverse=True), sorted(expected, reverse=True)
+    return max(abs(a / ea - 1.0), abs(b / eb - 1.0))
 
 
 def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
@@ -504,15 +516,57 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         if agree:
             det = replace(det3, side_blur_px=tuple(
                 float(v) for v in widths[_side_match(corners, det3.corners_px)]))
+            why = _unlike_opposite_blurs(det.side_blur_px)
         else:
             det = _assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
                             size_tolerance)
+            why = ""
+            if det.ok and det.corner_sigma_px > _AREA_ALONE_SIGMA_PX:
+                # the edge model did not fit and the model-free corners are loose: what
+                # was fitted is likely not the holder's outline (a side along a label's
+                # or a cable's edge; corpus frames 1.7-73 px off, sigma 0.37-0.54 px,
+                # where every right holder kept this way had sigma under 0.24 px)
+                why = (f"the edge profiles do not fit and the area method's corners are "
+                       f"uncertain to {det.corner_sigma_px:.2f} px (a side on another "
+                       "edge?)")
+        if why:
+            det = _not_ok(det, why)
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
     if det.ok:
         det = replace(det, clipped_sides=int(np.count_nonzero(
             _clipped_shares(gray, used) > _SATURATED_SHARE)))
     return det
+
+
+def _unlike_opposite_blurs(blur: tuple[float, ...]) -> str:
+    """Why the sides' fitted edge widths cannot be one holder's outline, or "".
+
+    Opposite sides are parallel edges of one flat face, a few hundred px apart: the lens
+    blurs them alike. A side fitted far softer than its opposite one has a second step
+    merged into its profile (a cast shadow's band beside it: corpus frames 1-1.4 px off
+    with widths 2.5 / 2.1 px against 0.2 / 0.15), where the right holders' opposite sides
+    differ by at most 0.8 px."""
+    if len(blur) != 4:
+        return ""
+    for k in (0, 1):
+        a, b = blur[k], blur[k + 2]
+        if not (math.isfinite(a) and math.isfinite(b)):
+            continue
+        lo, hi = min(a, b), max(a, b)
+        if hi - lo > _BLUR_UNLIKE_PX and hi > _BLUR_UNLIKE_RATIO * lo:
+            return (f"opposite sides {k} and {k + 2} have edges {a:.2f} and {b:.2f} px wide "
+                    "(one lens blurs both alike): a shadow or a second edge beside the "
+                    "softer one?")
+    return ""
+
+
+def _not_ok(det: HolderDetection, why: str) -> HolderDetection:
+    """``det`` refused with the reason (no corners, no pose)."""
+    return replace(det, ok=False, corners_px=np.full((4, 2), np.nan),
+                   center_px=np.full(2, np.nan), angle_deg=math.nan, quality=0.0,
+                   corner_ok=np.zeros(4, bool), size_px=(math.nan, math.nan),
+                   reason="; ".join(r for r in (det.reason, why) if r))
 
 
 def _clip_offset(area: list[tuple[Line | None, EdgePoints]],
