@@ -20,18 +20,11 @@ import pytest
 from alignd.vision import holder
 from alignd.vision.holder import order_corners, track_holder
 from drivers.sim.render import Polygon, Raster, coverage
+from drivers.sim.scenes import rectangle
 
 _W, _H = 640, 480
 _RAS = Raster((_W, _H), 1000.0, (_W / 2, _H / 2), 0.0)
 _BOX = (0, 0, _W, _H)
-
-
-def _rect(c: tuple[float, float], length: float, width: float, angle: float) -> np.ndarray:
-    t = np.radians(angle)
-    u, v = np.array([np.cos(t), np.sin(t)]), np.array([-np.sin(t), np.cos(t)])
-    c0 = np.asarray(c)
-    return np.array([c0 - u * length / 2 - v * width / 2, c0 + u * length / 2 - v * width / 2,
-                     c0 + u * length / 2 + v * width / 2, c0 - u * length / 2 + v * width / 2])
 
 
 def _noisy(img: np.ndarray, blur: float, seed: int) -> np.ndarray:
@@ -45,7 +38,7 @@ def _err(found: np.ndarray, truth: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(order_corners(found, t) - t, axis=1)))
 
 
-_HOLDER = _rect((300.3, 240.6), 124.0, 112.0, 4.0)
+_HOLDER = rectangle((300.3, 240.6), 124.0, 112.0, 4.0)
 
 
 def _shadowed(floor: float, seed: int = 0) -> np.ndarray:

@@ -21,6 +21,7 @@ from drivers.sim.scenes import (
     random_rim_scene,
     random_side_scene,
     random_top_scene,
+    rectangle,
 )
 
 
@@ -71,15 +72,8 @@ def _two_rectangles() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     img = np.full((720, 1280), 190.0, np.float32)
     ras = Raster((1280, 720), 1000.0, (640.0, 360.0), 0.0)
 
-    def rect(c: tuple[float, float], L: float, S: float, a: float) -> np.ndarray:
-        t = np.radians(a)
-        u, v = np.array([np.cos(t), np.sin(t)]), np.array([-np.sin(t), np.cos(t)])
-        c0 = np.asarray(c)
-        return np.array([c0 - u * L / 2 - v * S / 2, c0 + u * L / 2 - v * S / 2,
-                         c0 + u * L / 2 + v * S / 2, c0 - u * L / 2 + v * S / 2])
-
-    big, small = rect((420.3, 350.7), 300.0, 160.0, 7.3), rect((930.6, 380.2), 180.0, 100.0,
-                                                                  -21.0)
+    big = rectangle((420.3, 350.7), 300.0, 160.0, 7.3)
+    small = rectangle((930.6, 380.2), 180.0, 100.0, -21.0)
     for r in (big, small):
         cov = coverage(Polygon(r), ras, (0, 0, 1280, 720))
         img += (50.0 - img) * cov

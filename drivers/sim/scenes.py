@@ -191,7 +191,11 @@ def ellipse_conic(center: tuple[float, float], a: float, b: float, angle_deg: fl
     return C / np.abs(C).max()
 
 
-def _rect(center: np.ndarray, L: float, S: float, angle_deg: float) -> np.ndarray:
+def rectangle(center: np.ndarray | tuple[float, float], L: float, S: float,
+              angle_deg: float) -> np.ndarray:
+    """The corners (4, 2) of an L x S rectangle about ``center``, its L side turned
+    ``angle_deg`` from +x toward +y, in order round it (the scenes' and the tests')."""
+    center = np.asarray(center, float)
     t = math.radians(angle_deg)
     u = np.array([math.cos(t), math.sin(t)])
     v = np.array([-math.sin(t), math.cos(t)])
@@ -418,7 +422,7 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
     half = math.hypot(Lp, Sp + 2 * sample_th) / 2
     ctr = np.array([rng.uniform(margin + half, w - margin - half),
                     rng.uniform(margin + half, h - margin - half)])
-    holder = _rect(ctr, Lp, Sp, angle)
+    holder = rectangle(ctr, Lp, Sp, angle)
     corners = ras.distort(holder)
     # the sample: a plate along side 0-1, outside the holder
     sample = None
@@ -508,7 +512,7 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
             L2 = Lp * f
             S2 = min(L2 / rng.uniform(1.0, 2.5), Sp * float(rng.uniform(0.4, 2.0)))
             c2 = np.array([rng.uniform(0, w), rng.uniform(0, h)])
-            r2 = _rect(c2, L2, S2, float(rng.uniform(-180, 180)))
+            r2 = rectangle(c2, L2, S2, float(rng.uniform(-180, 180)))
             if np.min(-_dist_to_poly(r2, hull)) < 25 or np.any(
                     _dist_to_poly(hull, r2) > -25):
                 continue
@@ -555,7 +559,7 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
                          shadow=shadows and rng.random() < 0.7)
     params.update(info)
     if shadows:
-        inner = _rect(ctr, Lp - 40, Sp - 40, angle) if Sp > 80 else None
+        inner = rectangle(ctr, Lp - 40, Sp - 40, angle) if Sp > 80 else None
         spec = _speculars(rng, (h, w), int(rng.integers(1, 4)), [hull_px])
         if inner is not None and rng.random() < 0.5:  # a highlight on the holder's face
             c = ctr + rng.uniform(-0.2, 0.2, 2) * (Sp - 40)
@@ -596,7 +600,7 @@ def _holder_furniture(rng: np.random.Generator, img: np.ndarray, holder: np.ndar
     if rng.random() < 0.7 and Lp - 2 * inset > 30 and Sp - 2 * inset > 20:
         lw = (Lp - 2 * inset - 2 * r - 8) * rng.uniform(0.5, 0.9)
         lh = (Sp - 2 * inset) * rng.uniform(0.4, 0.8)
-        lab = _rect(ctr, max(lw, 10), lh, angle)
+        lab = rectangle(ctr, max(lw, 10), lh, angle)
         label_lv = float(np.clip(hold + rng.choice([-1, 1]) * rng.uniform(40, 150), 5, 250))
         h, w = img.shape
         mask = np.zeros((h, w), np.float32)
@@ -833,7 +837,7 @@ def random_rim_scene(rng: np.random.Generator, category: str | None = None,
         t = float(rng.uniform(0, 2 * math.pi))
         L = float(rng.uniform(60, 160))
         p = np.array(c) + np.array([a * math.cos(t), b * math.sin(t)]) * 0.95
-        hr = _rect(p, L, L / rng.uniform(1, 2.5), float(rng.uniform(-90, 90)))
+        hr = rectangle(p, L, L / rng.uniform(1, 2.5), float(rng.uniform(-90, 90)))
         off = rng.uniform(-15, 15, 2)
         depth = float(rng.uniform(0.1, 0.4))
         holder = (hr, off, depth, float(rng.uniform(5, 250)))
