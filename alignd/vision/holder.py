@@ -698,12 +698,11 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
             angle = _quad_angle(out)
             side = [math.hypot(*(out[(k + 1) % 4] - out[k])) for k in range(4)]
             size = ((side[0] + side[2]) / 2, (side[1] + side[3]) / 2)
-            if expected_size_px is not None:
-                eL, eS = max(expected_size_px), min(expected_size_px)
-                L, S = max(size), min(size)
-                if abs(L / eL - 1) > size_tolerance or abs(S / eS - 1) > size_tolerance:
-                    ok = False
-                    reasons.append(f"size {L:.1f} x {S:.1f} px, expected {eL:.1f} x {eS:.1f}")
+            if (expected_size_px is not None
+                    and _size_misfit(size, expected_size_px) > size_tolerance):
+                ok = False
+                reasons.append(f"size {max(size):.1f} x {min(size):.1f} px, expected "
+                               f"{max(expected_size_px):.1f} x {min(expected_size_px):.1f}")
         if not ok:
             out[:] = np.nan
             corner_ok[:] = False
