@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -203,6 +204,52 @@ def test_side_automatic_mode_faint_pole() -> None:
     assert abs(np.mean([e.x_mid_px for e in m.pole_edges]) - sc.pole_x_px) < 1.0
     assert min(abs(m.sample_edges[0].x_mid_px - x) for x in sc.sample_x_px) < 1.0
     assert m.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.003)
+
+
+def _side_bars(contrast_dn: float) -> np.ndarray:
+    """A 1280 x 720 side frame: a 36 px grey pole ``contrast_dn`` darker than the 130 DN
+    background (at 0.12 deg) and a dark sample slab (at 0.37 deg), defocused by 1.6 px."""
+    w, h = 1280, 720
+    ras = Raster((w, h), 3000.0, (w / 2, h / 2), 0.0)
+
+    def bar(x_mid: float, width: float, angle_deg: float) -> Polygon:
+        t = math.tan(math.radians(angle_deg))  # the top leans toward +x
+
+        def x(x0: float, y: float) -> float:
+            return x0 - (y - (h - 1) / 2) * t
+
+        return Polygon(np.array([[x(x_mid, -50), -50], [x(x_mid + width, -50), -50],
+                                 [x(x_mid + width, h + 50), h + 50], [x(x_mid, h + 50), h + 50]]))
+
+    img = 130.0 - contrast_dn * coverage(bar(500.0, 36.0, 0.12), ras, (0, 0, w, h))
+    img -= 110.0 * coverage(bar(820.0, 300.0, 0.37), ras, (0, 0, w, h))
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.6)
+    noisy = img + np.random.default_rng(4).normal(0, 1.5, img.shape)
+    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("contrast_dn", [25.0, 40.0])
+def test_side_regions_faint_pole(contrast_dn: float) -> None:
+    """A grey pole 25-40 DN off its background, defocused, in its region: its steps do not
+    reach the coarse search's Canny threshold, and the regions mode, which had no second
+    look, refused the frame ("reference pole not found in its region"). It looks again with
+    lower thresholds, as the automatic mode does, and measures the pole by both edges."""
+    m = measure_tilt(_side_bars(contrast_dn), pole_roi_px=(450, 0, 590, 720),
+                     sample_roi_px=(770, 10, 870, 710))
+    assert sorted(round(e.x_mid_px) for e in m.pole_edges) == [500, 536]
+    assert m.sample_edges[0].x_mid_px == pytest.approx(820.0, abs=0.1)
+    assert abs(m.tilt_deg - 0.25) <= min(0.003, 3 * m.sigma_deg)
+
+
+@pytest.mark.parametrize("seed", [107, 416])
+def test_side_regions_faint_sample_edge(seed: int) -> None:
+    """Uneven light leaves the sample's edge a faint step in its region (40-45 DN, blur
+    1.1-1.3 px): the regions mode looks again with lower thresholds where it refused the
+    frame ("sample edge not found in its region")."""
+    sc = random_side_scene(np.random.default_rng(seed), "uneven light")
+    m = measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
+    assert m.sample_edges[0].x_mid_px == pytest.approx(sc.near_x_px, abs=0.1)
+    assert abs(m.tilt_deg - sc.tilt_deg) <= min(0.003, 3 * m.sigma_deg)
 
 
 def test_side_automatic_mode_full_height_sample() -> None:

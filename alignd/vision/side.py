@@ -213,8 +213,13 @@ def _shifted(e: SideEdge, dx: int, dy: int) -> SideEdge:
     return replace(e, x_mid_px=e.x_mid_px + dx, rows=(e.rows[0] + dy, e.rows[1] + dy), line=ln)
 
 
+# the coarse search's Canny thresholds for a second look, where the default (30, 90) found
+# no pole or sample: a defocused step of 30 DN, or one in shade, does not reach 90
+FAINT_CANNY = (10, 30)
+
+
 def _roi_edges(image: np.ndarray, roi: tuple[int, int, int, int], what: str,
-               min_contrast: float) -> list[SideEdge]:
+               min_contrast: float, canny: tuple[int, int] = (30, 90)) -> list[SideEdge]:
     """The near-vertical edges inside a region of interest (x0, y0, x1, y1, exclusive)."""
     h, w = np.asarray(image).shape[:2]
     x0, y0, x1, y1 = (int(v) for v in roi)
@@ -225,7 +230,8 @@ def _roi_edges(image: np.ndarray, roi: tuple[int, int, int, int], what: str,
     crop = np.asarray(image)[y0:y1, x0:x1]
     min_rows = max(20, min(60, int(0.3 * (y1 - y0))))
     try:
-        edges = find_vertical_edges(crop, min_contrast=min_contrast, min_rows=min_rows)
+        edges = find_vertical_edges(crop, min_contrast=min_contrast, min_rows=min_rows,
+                                    canny=canny)
     except VisionError as exc:
         raise VisionError(f"side image: {what} region {tuple(roi)}: {exc}") from None
     return [_shifted(e, x0, y0) for e in edges]
@@ -336,13 +342,18 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
     h, w = np.asarray(image).shape[:2]
     mode = "roi" if pole_roi_px is not None or sample_roi_px is not None else "auto"
     if pole_roi_px is not None:
+        width = float(pole_roi_px[2] - pole_roi_px[0])
         pool = _roi_edges(image, pole_roi_px, "pole", min_contrast)
-        pole = _pole_pair(pool, float(pole_roi_px[2] - pole_roi_px[0])) or (
-            [max(pool, key=_length)] if pool else [])
+        pole = _pole_pair(pool, width)
+        if not pole:  # a faint pole edge: look again with lower thresholds
+            pool = _merge(pool, _roi_edges(image, pole_roi_px, "pole", min_contrast,
+                                           FAINT_CANNY))
+            pole = _pole_pair(pool, width) or ([max(pool, key=_length)] if pool else [])
         if not pole:
             raise VisionError(f"side image: reference pole not found in its region "
                               f"{tuple(pole_roi_px)}")
     edges: list[SideEdge] = []
+    faint_searched = False  # edges holds the lower thresholds' edges too
     if pole_roi_px is None or sample_roi_px is None:
         edges = find_vertical_edges(image, min_contrast=min_contrast)
         if not edges:
@@ -357,8 +368,9 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
             if not pole:
                 # a faint, defocused or shaded pole edge may not reach the coarse search's
                 # threshold: look again with a lower one
+                faint_searched = True
                 edges = _merge(edges, find_vertical_edges(image, min_contrast=min_contrast,
-                                                          canny=(10, 30)))
+                                                          canny=FAINT_CANNY))
                 pole = _auto_pole(edges, h, pole_min_fraction,
                                   max_pole_width_px or 0.1 * w)
         if pole_x_px is not None:
@@ -369,34 +381,28 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
             raise VisionError("side image: reference pole not found (no narrow bar whose two "
                               "edges run through the image from top to bottom; set "
                               "side_camera.pole_roi_px)")
-    pole_x = float(np.mean([e.x_mid_px for e in pole]))
     if sample_roi_px is not None:
-        rest = [e for e in _roi_edges(image, sample_roi_px, "sample", min_contrast)
-                if all(abs(e.x_mid_px - p.x_mid_px) > 3 for p in pole)]
+        def besides_pole(pool: list[SideEdge]) -> list[SideEdge]:
+            return [e for e in pool if all(abs(e.x_mid_px - p.x_mid_px) > 3 for p in pole)]
+
+        rest = besides_pole(_roi_edges(image, sample_roi_px, "sample", min_contrast))
+        if not rest:  # a faint sample edge: look again with lower thresholds
+            rest = besides_pole(_roi_edges(image, sample_roi_px, "sample", min_contrast,
+                                           FAINT_CANNY))
         if not rest:
             raise VisionError(f"side image: sample edge not found in its region "
                               f"{tuple(sample_roi_px)}")
         main = max(rest, key=_length)
     else:
-        rest = [e for e in edges if all(e is not p and abs(e.x_mid_px - p.x_mid_px) > 3
-                                        for p in pole)]
-        if sample_x_px is not None:
-            rest = [e for e in rest if abs(e.x_mid_px - sample_x_px) < 150]
-        # a straight edge fits to hundredths of a pixel; a fit through the sample's edge
-        # and a nearly collinear holder edge below it does not, and would bias the tilt
-        rest = [e for e in rest if e.line.rms_px <= max_edge_rms_px]
-        if not rest:
-            raise VisionError("side image: sample edge not found (no straight edge besides "
-                              "the pole)")
-        longest = max(_length(e) for e in rest)
-        if longest < 0.25 * h:
-            raise VisionError(f"side image: sample edge not found (the longest edge besides "
-                              f"the pole covers {longest} of {h} rows)")
-        long_ones = [e for e in rest if _length(e) >= 0.8 * longest]
-        if sample_x_px is not None:
-            main = min(long_ones, key=lambda e: abs(e.x_mid_px - sample_x_px))
-        else:
-            main = min(long_ones, key=lambda e: abs(e.x_mid_px - pole_x))
+        try:
+            main, rest = _auto_sample(edges, pole, h, sample_x_px, max_edge_rms_px)
+        except VisionError:
+            if faint_searched:
+                raise
+            # a faint sample edge: look again with lower thresholds
+            edges = _merge(edges, find_vertical_edges(image, min_contrast=min_contrast,
+                                                      canny=FAINT_CANNY))
+            main, rest = _auto_sample(edges, pole, h, sample_x_px, max_edge_rms_px)
     sample = _partner(main, rest)
     gray = as_gray(image, "side image")
     others = [*edges, *pole, *sample]
@@ -408,6 +414,32 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
         sample = [p for e in sample
                   if (p := _profiled(gray, e, others, sample_roi_px)) is not None]
     return _measurement(sample, pole, mode, (pole_roi_px, sample_roi_px))
+
+
+def _auto_sample(edges: list[SideEdge], pole: list[SideEdge], h: int,
+                 sample_x_px: float | None, max_edge_rms_px: float
+                 ) -> tuple[SideEdge, list[SideEdge]]:
+    """The sample edge without a region: among the long straight edges besides the pole
+    (at least 80 % of the longest), the one nearest ``sample_x_px`` or else the pole; and
+    the edges its opposite face is looked for among."""
+    rest = [e for e in edges if all(e is not p and abs(e.x_mid_px - p.x_mid_px) > 3
+                                    for p in pole)]
+    if sample_x_px is not None:
+        rest = [e for e in rest if abs(e.x_mid_px - sample_x_px) < 150]
+    # a straight edge fits to hundredths of a pixel; a fit through the sample's edge
+    # and a nearly collinear holder edge below it does not, and would bias the tilt
+    rest = [e for e in rest if e.line.rms_px <= max_edge_rms_px]
+    if not rest:
+        raise VisionError("side image: sample edge not found (no straight edge besides "
+                          "the pole)")
+    longest = max(_length(e) for e in rest)
+    if longest < 0.25 * h:
+        raise VisionError(f"side image: sample edge not found (the longest edge besides "
+                          f"the pole covers {longest} of {h} rows)")
+    long_ones = [e for e in rest if _length(e) >= 0.8 * longest]
+    near = sample_x_px if sample_x_px is not None else float(
+        np.mean([e.x_mid_px for e in pole]))
+    return min(long_ones, key=lambda e: abs(e.x_mid_px - near)), rest
 
 
 def _one_spread(gray: np.ndarray, pole: list[SideEdge], sample: list[SideEdge],
