@@ -550,9 +550,10 @@ def measure_tilt_frames(images: list[np.ndarray], *,
 
     With ``more`` (k -> k further frames of the view) and ``u_target_deg``, frames are
     added while the uncertainty is above the target: as many again each time, up to
-    ``max_frames`` in all, and no further once a doubling lowered it by less than
-    :data:`STALL` (independent noise falls by 1/sqrt 2; what the frames share, JPEG's
-    coding of a still view, does not). ``TiltAverage.stop`` says why it stopped."""
+    ``max_frames`` in all, and, on JPEG-coded frames, no further once a doubling lowered
+    it by less than :data:`STALL` (independent noise falls by 1/sqrt 2; what the frames
+    share, JPEG's coding of a still view, does not). ``TiltAverage.stop`` says why it
+    stopped."""
     if not images:
         raise VisionError("side image: no frame to measure the tilt in")
     images = list(images)
@@ -569,13 +570,16 @@ def measure_tilt_frames(images: list[np.ndarray], *,
     stop = ""
     if more is not None and u_target_deg is not None:
         limit = max(max_frames or len(frames), len(frames))
+        # the stall rule is for coded frames: raw frames' noise is independent, and the
+        # error they share (lighting, texture) cannot be told from u's own scatter
+        coded = _coded_quality(images[0], first) is not None
         u, before = _average_tilt(images, frames, jpeg=False).u_deg, math.inf
         while True:
             if u <= u_target_deg:
                 stop = f"u {u:.4f} <= {u_target_deg:g} deg"
             elif len(frames) >= limit:
                 stop = f"{limit} frames, the most allowed"
-            elif u > STALL * before:
+            elif coded and u > STALL * before:
                 stop = (f"u fell only {before:.4f} -> {u:.4f} deg as the frames doubled (the "
                         "frames share most of their error: more would not lower it much)")
             if stop:
@@ -590,12 +594,13 @@ def measure_tilt_frames(images: list[np.ndarray], *,
     return replace(_average_tilt(images, frames), stop=stop)
 
 
-# a doubling of the frames that lowers the tilt's uncertainty by less than this factor ends
-# the pre-check's frame taking: 1/sqrt 2 = 0.71 when the frames' errors are independent,
-# near 1 where they share it (a still view's JPEG coding); u's own estimate scatters, so
-# a raw view stops here now and then, having doubled its frames. On the bench's 300 views
+# a doubling of JPEG-coded frames that lowers the tilt's uncertainty by less than this
+# factor ends the pre-check's frame taking: 1/sqrt 2 = 0.71 when the frames' errors are
+# independent, near 1 where they share it (a still view's coding). On the bench's 300 views
 # (regions, up to 64 frames, target 0.0006 deg) it saved 6 frames a view and the largest
-# error was 0.00285 deg with it, 0.00294 without (docs/vision.md, Frames by uncertainty)
+# error was 0.00285 deg with it, 0.00294 without. Raw frames are not stopped so: u's own
+# estimate scatters, and a raw view stopped 0.00315 deg off at 32 frames (docs/vision.md,
+# Frames by uncertainty)
 STALL = 0.85
 
 
@@ -645,10 +650,7 @@ def _jpeg_bias(images: list[np.ndarray], frames: list[SideMeasurement]
         return None
     grays = [np.asarray(im) for im in images]
     h, w = grays[0].shape
-    e0 = first.sample_edges[0]
-    x0 = max(int(e0.x_mid_px) - 32, 0) // 8 * 8
-    y0 = max(e0.rows[0], 0) // 8 * 8  # the crop on the block grid
-    quality = jpeg_quality(grays[0][y0:min(e0.rows[1] + 1, h), x0:x0 + 64])
+    quality = _coded_quality(grays[0], first)
     if quality is None:
         return None
     rng = np.random.default_rng(0)
@@ -679,6 +681,19 @@ def _jpeg_bias(images: list[np.ndarray], frames: list[SideMeasurement]
             total += sign * float(wk) * got.bias_deg
             var += (float(wk) * got.u_deg) ** 2
     return quality, EdgeBias(total, math.sqrt(var))
+
+
+def _coded_quality(image: np.ndarray, m: SideMeasurement) -> int | None:
+    """The libjpeg quality ``image`` was coded at, read in a block-aligned crop around the
+    sample edge ``m`` found (:func:`alignd.vision.jpeg_bias.jpeg_quality`); None for an
+    image that is not 8-bit grey or not JPEG-coded."""
+    gray = np.asarray(image)
+    if gray.dtype != np.uint8 or gray.ndim != 2 or not m.sample_edges:
+        return None
+    e0 = m.sample_edges[0]
+    x0 = max(int(e0.x_mid_px) - 32, 0) // 8 * 8
+    y0 = max(e0.rows[0], 0) // 8 * 8  # the crop on the block grid
+    return jpeg_quality(gray[y0:min(e0.rows[1] + 1, gray.shape[0]), x0:x0 + 64])
 
 
 def _band_terms(edges: tuple[SideEdge, ...], sign: float) -> dict[int, float] | None:
