@@ -88,6 +88,10 @@ _WIDE = 9
 # the area method's windows stop this far (px along a side) short of the corners, where the
 # neighbouring side's transition would enter them (in the wide windows, further)
 _MARGIN, _WIDE_MARGIN = 10.0, 12.0
+# a side whose crossings stop more than _WIDE_MARGIN plus this (px, or this share of the
+# side, the larger) short of both its corners is not the holder's (see _bare_ends)
+_BARE_END_PX, _BARE_END_SHARE = 8.0, 0.1
+_BARE_PROBE_PX = 6.0  # ... unless the image steps there as the side does, this far across it
 
 
 @dataclass(frozen=True)
@@ -531,6 +535,10 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                        "edge?)")
         if why:
             det = _not_ok(det, why)
+    if det.ok:
+        bare = _bare_ends(gray, det, lens)
+        if bare:
+            det = _not_ok(det, bare)
     if polarity is not None and det.ok and pol != polarity:
         raise VisionError(f"top image: the holder found is {pol}, not {polarity}")
     if det.ok:
@@ -721,6 +729,75 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
                            edge_rms_px=tuple(ln.rms_px if ln else math.nan for ln in lines),
                            reason="; ".join(reasons), lines=tuple(lines),
                            fit_sigma_px=fit_sigma)
+
+
+def _bare_ends(gray: np.ndarray, det: HolderDetection, lens: Lens | None) -> str:
+    """Why a side of ``det`` cannot be the holder's outline, or "".
+
+    A side's crossings run from near one corner to near the other (the windows stop
+    ``_WIDE_MARGIN`` short of each). Where they stop well short of *both* corners, either
+    clutter beside the side took out its end columns (floor holes or screws by both
+    corners: corpus #638 of seed 5000, a right holder) or there is no edge there at all:
+    an edge inside the holder that the other three sides happen to frame (a label's:
+    corpus #937 of seed 5000 at 640 x 480, a rectangle of the holder's size 23 px off,
+    its label side bare for 34 and 36 px at its ends, where the right holders' sides of
+    four corpora were bare for at most 11 px). The image tells them apart: across the
+    line at a bare end, a side still steps as it does where it was measured."""
+    corners = det.corners_px if lens is None else lens.undistort(det.corners_px)
+    for i, ln in enumerate(det.lines):
+        if ln is None:
+            continue
+        # the side's two corners: the two nearest its line (a hint reorders the corners)
+        a, b = corners[np.argsort(np.abs(corners @ ln.n - ln.d))[:2]]
+        k = 1 if ln.vertical else 0
+        lo, hi = sorted((float(a[k]), float(b[k])))
+        length = float(np.hypot(*(b - a)))
+        if hi - lo < 1e-6:
+            continue
+        per_major = length / (hi - lo)  # px along the side per px of its major axis
+        bare = min(ln.major_span[0] - lo, hi - ln.major_span[1]) * per_major
+        if bare <= _WIDE_MARGIN + max(_BARE_END_PX, _BARE_END_SHARE * length):
+            continue
+        if not _steps_at_both_ends(gray, ln, (lo, hi), per_major, corners.mean(axis=0),
+                                   lens):
+            return (f"side {i}: its edge stops {bare:.0f} px short of both corners (of "
+                    f"{length:.0f} px) and the image does not step there: an edge inside "
+                    "the holder, a label's?")
+    return ""
+
+
+def _steps_at_both_ends(gray: np.ndarray, ln: Line, ends: tuple[float, float],
+                        per_major: float, center: np.ndarray, lens: Lens | None) -> bool:
+    """Whether the image steps across ``ln`` beyond both ends of its crossings as it does
+    along them: the level 6 px inside less the level 6 px outside, at every px of the
+    major axis, keeps the measured stretch's sign and at least a third of its size in
+    half of either bare end's positions."""
+    lo, hi = ends
+    trim = _WIDE_MARGIN / per_major
+    stretches = [np.arange(lo + trim, ln.major_span[0]), np.arange(ln.major_span[1], hi - trim),
+                 np.arange(ln.major_span[0], ln.major_span[1])]
+    major = np.concatenate(stretches)
+    # points on the line x = a + b y (or y = a + b x), from n . p = d
+    nx, ny = float(ln.n[0]), float(ln.n[1])
+    if ln.vertical:
+        pts = np.stack([(ln.d - ny * major) / nx, major], axis=1)
+    else:
+        pts = np.stack([major, (ln.d - nx * major) / ny], axis=1)
+    inward = ln.n if float((center - pts.mean(axis=0)) @ ln.n) > 0 else -ln.n
+    sides = [pts + s * _BARE_PROBE_PX * inward for s in (1.0, -1.0)]
+    if lens is not None:
+        sides = [lens.distort(p) for p in sides]
+    inside, outside = (cv2.remap(gray, p[:, 0:1].astype(np.float32),
+                                 p[:, 1:2].astype(np.float32), cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REPLICATE)[:, 0] for p in sides)
+    step = inside - outside
+    n0, n1 = len(stretches[0]), len(stretches[1])
+    ref = float(np.median(step[n0 + n1:])) if len(stretches[2]) else 0.0
+    if ref == 0.0:
+        return False
+    like = step * math.copysign(1.0, ref) >= abs(ref) / 3.0
+    return all(part.size == 0 or float(np.mean(part)) >= 0.5
+               for part in (like[:n0], like[n0:n0 + n1]))
 
 
 def _finite_max(v: np.ndarray) -> float:
