@@ -184,3 +184,43 @@ def test_a_side_whose_ends_are_cluttered_is_kept() -> None:
     det = track_holder(img, expected_size_px=(215.0, 159.0))
     assert det.ok, det.reason
     assert _err(det.corners_px, _BIG) < 0.1
+
+
+_WIDE_W, _WIDE_H = 1280, 720
+_WIDE_RAS = Raster((_WIDE_W, _WIDE_H), 1000.0, (_WIDE_W / 2, _WIDE_H / 2), 0.0)
+
+
+def _hard_shadow(offset_px: float, angle_deg: float, seed: int = 0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A sharp dark 303 x 193 px holder (85 DN, blur 0.49 px) on a bright disc (210 DN)
+    with its hard cast shadow (128 DN) shifted (offset_px, -0.73) px: a band a few px
+    wide beside two sides, one step the same way as the side's own (corpus #639 of seed
+    6100: returned 1.45 px off). The frame and the holder's corners."""
+    held = rectangle((492.4, 221.1), 303.2, 193.0, angle_deg)
+    box = (0, 0, _WIDE_W, _WIDE_H)
+    img = np.full((_WIDE_H, _WIDE_W), 210.0)
+    img += (128.0 - img) * coverage(Polygon(held + np.array([offset_px, -0.73])), _WIDE_RAS,
+                                    box)
+    img += (85.0 - img) * coverage(Polygon(held), _WIDE_RAS, box)
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.49)
+    noise = np.random.default_rng(seed).normal(0, 0.8, img.shape)
+    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
+
+
+@pytest.mark.parametrize("angle_deg", [-16.8, 20.0])
+def test_a_hard_shadow_band_beside_a_side_is_not_taken_for_it(angle_deg: float) -> None:
+    """A 5 px band: the side's windows hold both steps, its crossings scatter, the edge
+    profiles disagree, and the area method's corners (6 px off) are not returned."""
+    img, held = _hard_shadow(5.0, angle_deg)
+    det = track_holder(img, expected_size_px=(303.2, 193.0))
+    if det.ok:
+        assert _err(det.corners_px, held) < 0.3
+    else:
+        assert "scatters" in det.reason
+
+
+def test_rough_side_rule() -> None:
+    assert holder._rough_side((0.061, 0.436, 0.104, 0.048)).startswith(
+        "the edge profiles do not fit and side 1's edge scatters 5.3 times")
+    assert holder._rough_side((0.03, 0.13, 0.04, 0.08)) == ""  # a right holder: 2.2 times
+    assert holder._rough_side((0.1, float("nan"), 0.1, 0.1)) == ""
