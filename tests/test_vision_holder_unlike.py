@@ -224,3 +224,34 @@ def test_rough_side_rule() -> None:
         "the edge profiles do not fit and side 1's edge scatters 5.3 times")
     assert holder._rough_side((0.03, 0.13, 0.04, 0.08)) == ""  # a right holder: 2.2 times
     assert holder._rough_side((0.1, float("nan"), 0.1, 0.1)) == ""
+
+
+def _dark_strip(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A dark 280 x 175 px holder (30 DN) on a bright disc (200 DN) with a sample strip
+    13.5 px wide along one long side (62 DN): holder -> strip -> disc steps twice the same
+    way, the strip's level near the holder's (0.23 of the strip's step to the disc;
+    corpus #996 of seed 7100 at 640 x 480, 0.22: holder + strip, 280 x 189 px, inside
+    the size tolerance, was returned 13.5 px off)."""
+    held = rectangle((286.0, 260.3), 279.8, 175.2, -67.9)
+    t = np.radians(-67.9)
+    out = np.array([-np.sin(t), np.cos(t)])  # across the holder
+    union = rectangle(np.array([286.0, 260.3]) + out * 13.5 / 2, 279.8, 175.2 + 13.5, -67.9)
+    img = (200.0 + (62.0 - 200.0) * coverage(Polygon(union), _RAS, _BOX)
+           + (30.0 - 62.0) * coverage(Polygon(held), _RAS, _BOX))
+    return _noisy(img, 1.0, seed), held
+
+
+def test_a_dark_strip_beside_a_dark_holder_is_left_out() -> None:
+    img, held = _dark_strip()
+    det = track_holder(img, expected_size_px=(279.8, 175.2))
+    assert det.ok, det.reason
+    assert _err(det.corners_px, held) < 0.1
+
+
+def test_a_sharp_holders_hard_shadow_band_6px() -> None:
+    """A 6 px band: its outer edge is clean and the windows hold it alone, so only the
+    levels tell it; they are read 2-3.5 px inside a sharp side (4-7 px is past it)."""
+    for angle_deg in (-16.8, 20.0):
+        img, held = _hard_shadow(6.0, angle_deg)
+        det = track_holder(img, expected_size_px=(303.2, 193.0))
+        assert not det.ok or _err(det.corners_px, held) < 0.3

@@ -7,7 +7,8 @@ side and still pass every other check: it is straight, of the right polarity, an
 band a tenth of the holder wide it is within the size tolerance. It is then wrong by the
 band's width (16 px on a corpus scene). A true side has the holder's own level just inside
 it; a shadow's edge has the band's level there, between the holder's and the outside's.
-(A label or a sample near a side does not look like that: the level just inside is the
+A sample strip darker than the disc beside a dark holder is such a band too. (A label or
+a sample on the holder near a side does not look like that: the level just inside is the
 holder's, whatever lies further in.)
 """
 
@@ -22,11 +23,17 @@ __all__ = ["InnerStep", "inner_step", "side_ratios"]
 # levels are medians over positions along the middle 60 % of a side, each the mean of a
 # few pixels at a depth band (px, + outward): outside, just inside (and deeper inside)
 _OUT, _IN = (4.0, 7.0), (-7.0, -4.0)
+# ... and nearer, for a sharp side (one whose outside has settled within _NEAR[1] px of
+# it): a band only 3-7 px wide (a hard shadow beside a sharp holder) lies there
+_NEAR = (-3.5, -2.0)
+_SETTLED = 0.1  # sharp: the outside's level 2-3.5 px out within this of the step of 4-7 px
 _FAR_PX = 24.0  # the inner step is looked for this deep (at most 0.35 of the extent across)
 # the level just inside a side differing from the level deeper inside and from the
 # holder's interior (the median over its middle) the same way as the side's own step, by
-# at least this fraction of that step, flags the side (docs/vision.md: the corpus' values)
-_MIN_RATIO = 0.3
+# at least this fraction of that step, flags the side (docs/vision.md: the corpus' values;
+# 0.3 until a dark strip beside a dark holder read 0.22, and 0.15 flagged right holders
+# when the configured size was 5 % small)
+_MIN_RATIO = 0.2
 _MIN_STEP_DN = 8.0  # and at least this, in grey levels (texture and noise stay below)
 
 
@@ -69,27 +76,40 @@ def _sides(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return edge, length, n
 
 
-def side_ratios(gray: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def side_ratios(gray: np.ndarray, corners: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per side of ``corners`` (4, 2, cyclic order): the level just inside it minus the
     level deeper inside (``_FAR_PX``, at most 0.35 of the extent across), and minus the
     holder's interior level, each over the side's own step (0 where of the other sign, or
-    under ``_MIN_STEP_DN``, or the holder is too narrow)."""
+    under ``_MIN_STEP_DN``, or the holder is too narrow); and how deep "just inside" was
+    (px: 4 for a soft side, 2 for a sharp one, see ``_NEAR``)."""
     c = np.asarray(corners, float)
     edge, length, n = _sides(c)
     zero = np.zeros(4)
     if length.min() < 8.0:
-        return zero, zero
+        return zero, zero, np.full(4, -_IN[1])
     far = np.minimum(_FAR_PX, 0.35 * length[[1, 2, 3, 0]])  # the extent across each side
     frac = np.linspace(0.2, 0.8, 16)
     band = np.arange(4.0)
-    # depths per side: just inside, outside, and the deep band (from -far, 4 px)
+    # depths per side: just inside, outside, the deep band (from -far, 4 px), and nearer
+    # inside and outside (every 0.5 px)
+    near = np.arange(4) * 0.5
     depths = np.concatenate([np.broadcast_to(np.arange(_IN[0], _IN[1] + 0.5), (4, 4)),
                              np.broadcast_to(np.arange(_OUT[0], _OUT[1] + 0.5), (4, 4)),
-                             -far[:, None] + band[None]], axis=1)  # (4, 12)
+                             -far[:, None] + band[None],
+                             np.broadcast_to(_NEAR[0] + near, (4, 4)),
+                             np.broadcast_to(-_NEAR[1] + near, (4, 4))], axis=1)  # (4, 20)
     p = (c[:, None, None] + frac[None, :, None, None] * edge[:, None, None]
          + depths[:, None, :, None] * n[:, None, None])
     v = _sample_points(gray, p)  # (side, position, depth)
-    inn, out, deep = v[..., :4].mean(axis=2), v[..., 4:8].mean(axis=2), v[..., 8:].mean(axis=2)
+    inn, out, deep = v[..., :4].mean(axis=2), v[..., 4:8].mean(axis=2), v[..., 8:12].mean(axis=2)
+    step = np.median(out - inn, axis=1)
+    # a sharp side's outside has settled 2 px out: so has its inside, 2 px in, and a
+    # level there unlike the deeper one is a second step (a band narrower than 4 px
+    # reaches past the usual probe)
+    sharp = np.abs(np.median(v[..., 16:20].mean(axis=2) - out, axis=1)) \
+        <= _SETTLED * np.abs(step)
+    inn = np.where(sharp[:, None], v[..., 12:16].mean(axis=2), inn)
     step = np.median(out - inn, axis=1)
     to_deep = np.median(inn - deep, axis=1)
     to_level = np.median(inn, axis=1) - _interior(gray, c)
@@ -98,7 +118,7 @@ def side_ratios(gray: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.n
     for d in (to_deep, to_level):
         good = ok & (d * step > 0) & (np.abs(d) >= _MIN_STEP_DN)
         out_r.append(np.where(good, d / np.where(good, step, 1.0), 0.0))
-    return out_r[0], out_r[1]
+    return out_r[0], out_r[1], np.where(sharp, -_NEAR[1], -_IN[1])
 
 
 def inner_step(gray: np.ndarray, corners: np.ndarray) -> InnerStep | None:
@@ -108,26 +128,27 @@ def inner_step(gray: np.ndarray, corners: np.ndarray) -> InnerStep | None:
     shadow's edge taken for the side; else None. (Tracking runs it every frame: the four
     sides' bands are read in one go, about 0.3 ms.)"""
     c = np.asarray(corners, float)
-    r_deep, r_level = side_ratios(gray, c)
+    r_deep, r_level, start = side_ratios(gray, c)
     ratio = np.minimum(r_deep, r_level)
     k = int(np.argmax(ratio))
     if ratio[k] < _MIN_RATIO:
         return None
     edge, length, n = _sides(c)
     far = min(_FAR_PX, 0.35 * float(length[(k + 1) % 4]))
-    depth = _inner_depth(gray, c[k], edge[k] / length[k], n[k], float(length[k]), far)
+    depth = _inner_depth(gray, c[k], edge[k] / length[k], n[k], float(length[k]), far,
+                         float(start[k]))
     return None if depth is None else InnerStep(k, float(ratio[k]), depth,
                                                 (float(-n[k, 0]), float(-n[k, 1])))
 
 
 def _inner_depth(gray: np.ndarray, a: np.ndarray, u: np.ndarray, n: np.ndarray,
-                 length: float, far: float) -> float | None:
+                 length: float, far: float, start: float = -_IN[1]) -> float | None:
     """How far inside the side (from corner ``a`` along ``u``, ``n`` outward) the median
     profile, going inward, first passes half-way from the level just inside to the level
     ``far`` inside: the inner step, where the holder's true side likely is (None when
     there is no such step, only a slow change)."""
     frac = np.linspace(0.2, 0.8, 16)
-    depths = np.arange(_IN[1], -far - 0.5, -1.0)  # from just inside, inward
+    depths = np.arange(-start, -far - 0.5, -1.0)  # from just inside (start px), inward
     p = a + (frac[:, None, None] * length) * u + depths[None, :, None] * n
     prof = np.median(_sample_points(gray, p), axis=0)
     half = 0.5 * (float(prof[:3].mean()) + float(prof[-3:].mean()))
