@@ -567,13 +567,17 @@ def measure_tilt_frames(images: list[np.ndarray], *,
                 img, pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px))
 
     track(images[1:])
+    # the frames' JPEG quality (None: not coded), read once: the bias step needs it, and
+    # so does the stall rule below
+    quality = (_coded_quality(images[0], first) if len(images) >= 3 or more is not None
+               else None)
     stop = ""
     if more is not None and u_target_deg is not None:
         limit = max(max_frames or len(frames), len(frames))
         # the stall rule is for coded frames: raw frames' noise is independent, and the
         # error they share (lighting, texture) cannot be told from u's own scatter
-        coded = _coded_quality(images[0], first) is not None
-        u, before = _average_tilt(images, frames, jpeg=False).u_deg, math.inf
+        coded = quality is not None
+        u, before = _average_tilt(images, frames, None).u_deg, math.inf
         while True:
             if u <= u_target_deg:
                 stop = f"u {u:.4f} <= {u_target_deg:g} deg"
@@ -590,8 +594,8 @@ def measure_tilt_frames(images: list[np.ndarray], *,
                 break
             images.extend(new)
             track(new)
-            before, u = u, _average_tilt(images, frames, jpeg=False).u_deg
-    return replace(_average_tilt(images, frames), stop=stop)
+            before, u = u, _average_tilt(images, frames, None).u_deg
+    return replace(_average_tilt(images, frames, quality), stop=stop)
 
 
 # a doubling of JPEG-coded frames that lowers the tilt's uncertainty by less than this
@@ -604,17 +608,18 @@ def measure_tilt_frames(images: list[np.ndarray], *,
 STALL = 0.85
 
 
-def _average_tilt(images: list[np.ndarray], frames: list[SideMeasurement], *,
-                  jpeg: bool = True) -> TiltAverage:
+def _average_tilt(images: list[np.ndarray], frames: list[SideMeasurement],
+                  quality: int | None) -> TiltAverage:
     """The mean tilt of ``frames`` (measured in ``images``) and its standard uncertainty
-    (:class:`TiltAverage`); ``jpeg`` False leaves the coding's bias (a simulation of a
-    second or so) for a final call."""
+    (:class:`TiltAverage`), less the coding's bias for frames JPEG-coded at ``quality``
+    (None: none taken off; a simulation of a second or so, so the frame taking leaves it
+    for a final call)."""
     t = np.array([m.tilt_deg for m in frames])
     n = len(frames)
     u_fit = math.sqrt(float(np.mean([m.sigma_deg ** 2 for m in frames])) / n)
     u_scatter = float(np.std(t, ddof=1)) / math.sqrt(n) if n >= 3 else 0.0
     tilt, u = float(t.mean()), max(u_fit, u_scatter, _u_blocks(frames))
-    found = _jpeg_bias(images, frames) if n >= 3 and jpeg else None
+    found = _jpeg_bias(images, frames, quality) if n >= 3 and quality is not None else None
     if found is None:
         return TiltAverage(tilt, u, tuple(frames))
     quality, bias = found
@@ -633,11 +638,11 @@ JPEG_BIAS_SE = 2.0
 JPEG_BIAS_DRAWS = 16  # simulated frames per edge
 
 
-def _jpeg_bias(images: list[np.ndarray], frames: list[SideMeasurement]
+def _jpeg_bias(images: list[np.ndarray], frames: list[SideMeasurement], quality: int
                ) -> tuple[int, EdgeBias] | None:
-    """The JPEG coding's bias on the mean tilt of ``frames`` (measured in ``images``) and
-    the quality found, or None when the frames are not 8-bit grey JPEG-coded at a libjpeg
-    quality (:func:`alignd.vision.jpeg_bias.jpeg_quality`) or an edge cannot be simulated.
+    """The JPEG coding's bias on the mean tilt of ``frames`` (measured in ``images``,
+    coded at libjpeg ``quality``: :func:`_coded_quality`) and that quality, or None when
+    the frames are not 8-bit grey or an edge cannot be simulated.
     Each edge's bias is measured by coding its fit again
     (:func:`alignd.vision.jpeg_bias.edge_angle_bias`; seeded, so the same frames give the
     same tilt) and combined as :func:`_combine` weighs the edges."""
@@ -650,9 +655,6 @@ def _jpeg_bias(images: list[np.ndarray], frames: list[SideMeasurement]
         return None
     grays = [np.asarray(im) for im in images]
     h, w = grays[0].shape
-    quality = _coded_quality(grays[0], first)
-    if quality is None:
-        return None
     rng = np.random.default_rng(0)
     pole_roi, sample_roi = first.rois
     total, var = 0.0, 0.0
