@@ -47,6 +47,7 @@ from alignd.vision.edges import (
     intersect,
     residual_correlation,
 )
+from alignd.vision.holder_bands import side_bands
 from alignd.vision.holder_search import search_candidates
 from alignd.vision.holder_steps import inner_step
 from alignd.vision.lens import Lens
@@ -124,6 +125,9 @@ class HolderDetection:
     # sides whose edge pixels clip (full scale or zero) in over _SATURATED_SHARE of their
     # columns: at 4 the face's true level is nowhere visible (see clip_warning)
     clipped_sides: int = 0
+    # sides found between two steps (a hard shadow's band beside them) and moved in to the
+    # inner one, the holder's edge (:func:`_off_the_bands`)
+    banded_sides: int = 0
 
     @property
     def clip_warning(self) -> str:
@@ -264,11 +268,13 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     # tracking reads a few thousand pixels: an 8-bit frame is used as it is (no copy)
     gray = raw if raw.ndim == 2 and raw.dtype == np.uint8 and min(raw.shape) >= 16 else \
         as_gray(image, "top image")
-    prior: tuple[np.ndarray, np.ndarray] | None = None  # previous corners, side blurs
+    # previous corners, side blurs, and whether a side of it lay between two steps
+    prior: tuple[np.ndarray, np.ndarray, bool] | None = None
     if isinstance(hint, HolderDetection):
         hint_arr: np.ndarray | None = np.asarray(hint.corners_px, float)
         if len(hint.side_blur_px) == 4 and np.all(np.isfinite(hint.side_blur_px)):
-            prior = (np.asarray(hint.corners_px, float), np.asarray(hint.side_blur_px))
+            prior = (np.asarray(hint.corners_px, float), np.asarray(hint.side_blur_px),
+                     bool(hint.banded_sides))
     else:
         hint_arr = None if hint is None else np.asarray(hint, float)
     reasons: list[str] = []
@@ -398,22 +404,27 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
             expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
             min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None = None,
             size_tolerance: float = 0.15, profile: bool = True, seeded: bool = False,
-            prior: tuple[np.ndarray, np.ndarray] | None = None) -> HolderDetection:
+            prior: tuple[np.ndarray, np.ndarray, bool] | None = None) -> HolderDetection:
     """Fine fit from approximate corners (a coarse box or, ``seeded``, the previous frame's
-    corners; ``prior``: those corners and their sides' blurs, reused when the sides held)."""
+    corners; ``prior``: those corners and their sides' blurs, reused when the sides held,
+    and whether a side lay between two steps: if none did, the sides that held are not
+    looked at for a band again, :func:`_off_the_bands`)."""
     # (a distorted side is curved in the frame: windows along the straight segment between
     # its corners would miss its middle, so with a lens the coarse search always runs)
     straight = lens is None or lens.k1 == 0.0
     sides = _fit_sides(gray, corners, _HALF_WIDTH, _MARGIN, min_contrast, lens) \
         if seeded and straight and passes <= 1 else None
     blur = None
+    bands = True
     if sides is None or not _seed_holds(sides, corners, max_rms_px, lens):
         corners, sides = _locate(gray, corners, min_contrast, passes, lens)
     elif prior is not None:
-        # every side within a pixel of where it was: its blur is the previous frame's
+        # every side within a pixel of where it was: its blur is the previous frame's,
+        # and so is its edge's make (one step or two: 2-5 ms a frame to tell)
         blur = prior[1][_side_match(prior[0], corners)]
+        bands = prior[2]
     return _finish(gray, corners, sides, polarity, expected_size_px, hint, min_contrast,
-                   max_rms_px, lens, size_tolerance, profile, blur)
+                   max_rms_px, lens, size_tolerance, profile, blur, bands)
 
 
 def _seed_holds(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
@@ -477,9 +488,10 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             polarity: str | None, expected_size_px: tuple[float, float] | None,
             hint: np.ndarray | None, min_contrast: float, max_rms_px: float,
             lens: Lens | None, size_tolerance: float, profile: bool,
-            blur: np.ndarray | None = None) -> HolderDetection:
+            blur: np.ndarray | None = None, bands: bool = True) -> HolderDetection:
     """The detection from the sides' area-method fits: checked, widened for soft edges,
-    refined by the profile fit where that agrees."""
+    refined by the profile fit where that agrees, and (``bands``) its sides moved off a
+    band beside them."""
     pol = _polarity(gray, corners)
     # with the profile fit to follow, the area method's corner sigma is rarely reported:
     # its residual correlations are left out here and measured only when it is
@@ -552,7 +564,54 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
     if det.ok:
         det = replace(det, clipped_sides=int(np.count_nonzero(
             _clipped_shares(gray, used) > _SATURATED_SHARE)))
+        if bands:
+            det = _off_the_bands(gray, det, lens, expected_size_px, size_tolerance)
     return det
+
+
+def _off_the_bands(gray: np.ndarray, det: HolderDetection, lens: Lens | None,
+                   expected_size_px: tuple[float, float] | None, size_tolerance: float
+                   ) -> HolderDetection:
+    """``det`` with each side that lies between two steps (a hard shadow's band beside
+    it, :func:`alignd.vision.holder_bands.side_bands`) moved in to the inner step, the
+    holder's edge; its corners' sigma grows by that step's standard error. Not ok when the
+    moved holder's size fails the size check."""
+    bands = side_bands(gray, det.corners_px, lens)
+    if not bands:
+        return det
+    c = np.asarray(det.corners_px, float)
+    ci = c if lens is None else lens.undistort(c)
+    nxt = ci[[1, 2, 3, 0]]
+    u = (nxt - ci) / np.linalg.norm(nxt - ci, axis=1)[:, None]
+    n = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    n[np.sum(((ci + nxt) / 2 - ci.mean(axis=0)) * n, axis=1) < 0] *= -1
+    shift = np.zeros(4)
+    extra = 0.0
+    for b in bands:
+        shift[b.side] = b.inner_px
+        extra = max(extra, b.sigma_px)
+    # each corner k is where sides k - 1 and k meet: moved along both normals so that it
+    # lies on both moved lines (a + n_a . x = shift_a for the corner's offset x)
+    out = ci.copy()
+    for k in range(4):
+        A = np.array([n[k - 1], n[k]])
+        out[k] = ci[k] + np.linalg.solve(A, np.array([shift[k - 1], shift[k]]))
+    side = [float(np.linalg.norm(out[(k + 1) % 4] - out[k])) for k in range(4)]
+    size = ((side[0] + side[2]) / 2, (side[1] + side[3]) / 2)
+    what = ", ".join(f"side {b.side} by {-b.inner_px:.2f} px" for b in bands)
+    if expected_size_px is not None and _size_misfit(size, expected_size_px) > size_tolerance:
+        return _not_ok(det, f"a side lies between two steps (a hard shadow's band?) and "
+                            f"moved in to the inner one ({what}) the holder is "
+                            f"{max(size):.1f} x {min(size):.1f} px, expected "
+                            f"{max(expected_size_px):.1f} x {min(expected_size_px):.1f}")
+    log.debug("top image: sides between two steps moved in to the inner one: %s", what)
+    center, angle = _quad_center(out), _quad_angle(out)
+    frame = out if lens is None or lens.k1 == 0.0 else lens.distort(out)
+    if lens is not None and lens.k1 != 0.0:
+        center = lens.distort(center[None])[0]
+    return replace(det, corners_px=frame, center_px=center, angle_deg=angle, size_px=size,
+                   corner_sigma_px=math.hypot(det.corner_sigma_px, extra), lines=(),
+                   banded_sides=len(bands))
 
 
 def _rough_side(rms: tuple[float, ...]) -> str:

@@ -1,0 +1,255 @@
+"""A check of a found holder's sides: does a side's edge step twice within a few pixels?
+
+A sharp dark holder lit by a small lamp casts a hard shadow: a band 1-7 px wide, darker
+than the disc, along the sides facing away from the lamp (a sample strip or a perspective
+wall darker than the disc beside a dark holder is such a band too). Across that side the
+image steps twice the same way (holder -> band -> disc), and both steps fall in the edge
+windows: the area method and the profile fit each put the side somewhere between the two
+steps (a 1.5-4 px band moved corners by 1.1-2.7 px, and passed every other check). Wider
+bands are the coarse search's and :mod:`alignd.vision.holder_steps`' (the side taken on
+the band's outer edge).
+
+Here the pixels within 8 px of each side's middle 70 % are binned by their exact distance
+to it (0.2 px bins: the edge spread function, super-resolved by the side's slant) and
+fitted by one blurred step and by two steps of one blur, each with the levels' linear
+slope and a pixel's exact response (:func:`alignd.vision.profile_fit.step_response`; an
+erf instead read a sharp edge's pixel squares as two steps 1 px apart). A side whose
+profile two steps of the same sign fit far better, resolved, the smaller a fair share of
+both, the found side 0.3 px or more outside the inner one, lies between two edges. The
+holder's own edge is the inner step: a shadow, a strip or a wall lies outside the top
+face. (A band inside the face along one side would read the same way: a chamfer lit
+apart, a label flush with the edge; a band along opposite sides is taken for such and
+left alone, see :func:`side_bands`.) A band narrower than about 1 px is not resolved
+from the edge's own blur and still moves the side by up to half a pixel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from alignd.vision.lens import Lens
+from alignd.vision.profile_fit import step_response
+
+__all__ = ["Band", "side_bands"]
+
+_REACH = 8.0  # px either side of the found side
+_BIN = 0.2  # px: the pixels are binned by their distance to the side
+_ALONG = (0.15, 0.85)  # the part of the side read (corners and their shadows left out)
+_EDGES = np.arange(-_REACH, _REACH + _BIN / 2, _BIN)
+# the decision (docs/vision.md, "A side between two steps"): two steps of one sign fit a
+# side _MIN_GAIN times better than one, their sum within _WHOLE of the side's whole step
+# (tails to tails), their blur at most _SHARPER px over the one step's, at least _MIN_SEP
+# px and _RESOLVED blurs apart, the smaller at least _MIN_SHARE of both, and the found
+# side at least _MIN_OFF px outside the inner one and inside the outer one. (Synthetic
+# hard bands 1.5-4 px: gains 6-2500, shares 0.34-0.36; six corpora of right holders,
+# 6006 frames: none passes every rule.)
+_MIN_GAIN = 3.0
+_WHOLE = 0.3
+_SHARPER = 0.3
+_MIN_SEP = 0.6
+_RESOLVED = 2.0
+_MIN_SHARE = 0.15
+_MIN_OFF = 0.3
+_WORSE = 3.0  # only sides one step fits this many times worse than the best side get two
+
+
+@dataclass(frozen=True)
+class Band:
+    """Side ``side`` (corner ``side`` to ``side + 1``) steps twice: its inner step lies
+    ``inner_px`` from the found side (negative: inside) and is the holder's edge."""
+
+    side: int
+    inner_px: float
+    outer_px: float
+    share: float  # the smaller step over both
+    gain: float  # the one step's residual sum of squares over the two steps'
+    sigma_px: float  # standard error of inner_px (from the fit's residuals)
+
+
+def _profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None
+              ) -> tuple[np.ndarray, ...]:
+    """Each side's pixels within ``_REACH`` of it along its middle (``_ALONG``), binned
+    by their distance to it in the ideal image (``ci``: the corners there; + outward,
+    ``_BIN`` px bins): the bins' mean distances, mean levels and pixel counts, each
+    (4, bins), the pixels' spread within the bins (4,) and the sides' footprint widths
+    (4, 2) (a pixel's square seen across the side: :func:`step_response`)."""
+    h, w = gray.shape
+    nxt = ci[[1, 2, 3, 0]]
+    edge = nxt - ci
+    length = np.linalg.norm(edge, axis=1)
+    u = edge / np.maximum(length, 1e-9)[:, None]
+    n = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    n[np.sum(((ci + nxt) / 2 - ci.mean(axis=0)) * n, axis=1) < 0] *= -1
+    nb = _EDGES.size - 1
+    xs, ms, cnt = np.zeros((4, nb)), np.zeros((4, nb)), np.zeros((4, nb))
+    within = np.zeros(4)
+    for k in range(4):
+        # the side's middle, traced in the frame one pixel column (row) at a time
+        t = np.linspace(_ALONG[0], _ALONG[1], 16) * length[k]
+        q = ci[k] + t[:, None] * u[k]
+        q = q if lens is None else lens.distort(q)
+        across = 0 if abs(u[k, 0]) >= abs(u[k, 1]) else 1  # columns (0) or rows (1)
+        order = np.argsort(q[:, across])
+        lo, hi = math.ceil(q[order[0], across]), math.floor(q[order[-1], across])
+        if hi - lo < 8:
+            continue
+        major = np.arange(lo, hi + 1, dtype=float)
+        minor = np.interp(major, q[order, across], q[order, 1 - across])
+        reach = math.ceil(_REACH / max(abs(u[k, across]), 0.5)) + 2
+        off = np.arange(-reach, reach + 1, dtype=float)
+        mi = np.rint(minor)[:, None] + off[None, :]
+        ma = np.broadcast_to(major[:, None], mi.shape)
+        px = np.stack([ma, mi] if across == 0 else [mi, ma], axis=-1).reshape(-1, 2)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        px = px[inside]
+        pi = px if lens is None else lens.undistort(px)
+        d = (pi - ci[k]) @ n[k]
+        along = (pi - ci[k]) @ u[k]
+        keep = (np.abs(d) < _REACH) & (along >= _ALONG[0] * length[k]) & (
+            along <= _ALONG[1] * length[k])
+        d = d[keep]
+        v = gray[px[keep, 1].astype(np.intp), px[keep, 0].astype(np.intp)].astype(float)
+        idx = np.clip(np.searchsorted(_EDGES, d) - 1, 0, nb - 1)
+        c = np.bincount(idx, minlength=nb).astype(float)
+        sv = np.bincount(idx, v, nb)
+        sd = np.bincount(idx, d, nb)
+        m = sv / np.maximum(c, 1)
+        xs[k] = np.where(c > 0, sd / np.maximum(c, 1), 0.5 * (_EDGES[:-1] + _EDGES[1:]))
+        ms[k], cnt[k] = m, c
+        within[k] = float(np.sum(v * v) - np.sum(c * m * m))
+    foot = np.sort(np.abs(n), axis=1)[:, ::-1]
+    return xs, ms, cnt, within, foot
+
+
+def _model(P: np.ndarray, x: np.ndarray, foot: np.ndarray, steps: int
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """The profile a + g x + sum_j c_j S(x - d_j) for each row of P = (a, g, s, c_1, d_1,
+    ...) at the distances ``x`` (rows), S a pixel's response to a step blurred by s
+    (:func:`step_response`, the footprint ``foot``), and its Jacobian: (B, bins) and
+    (B, bins, 3 + 2 steps)."""
+    s = P[:, 2:3]
+    f = P[:, 0:1] + P[:, 1:2] * x
+    cols = [np.ones_like(f), x, np.zeros_like(f)]
+    for j in range(steps):
+        c, d = P[:, 3 + 2 * j:4 + 2 * j], P[:, 4 + 2 * j:5 + 2 * j]
+        S, S1, S2 = step_response(x - d, s, foot[:, 0:1], foot[:, 1:2])
+        f = f + c * S
+        cols[2] = cols[2] + c * s * S2  # dS/ds = s d2S/dd2
+        cols += [S, -c * S1]
+    return f, np.stack(cols, axis=2)
+
+
+def _fit(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
+         steps: int, iterations: int = 40) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt for many profiles at once (rows of ``P``; ``x``, ``m`` the
+    profiles, ``w`` their weights, ``foot`` the pixels' footprints): the parameters, the
+    weighted residual sums of squares and the normal matrices at the end."""
+    P = P.copy()
+    lam = np.full(len(P), 1e-3)
+    f, J = _model(P, x, foot, steps)
+    cost = np.sum(w * (m - f) ** 2, axis=1)
+    eye = np.eye(P.shape[1])[None]
+    live = np.ones(len(P), bool)  # rows still improving
+    for _ in range(iterations):
+        b = np.flatnonzero(live)
+        if b.size == 0:
+            break
+        Jw = J[b] * w[b, :, None]
+        A = Jw.transpose(0, 2, 1) @ J[b]
+        g = (Jw.transpose(0, 2, 1) @ (m[b] - f[b])[..., None])[..., 0]
+        diag = np.einsum("bii->bi", A)[:, :, None] * eye
+        try:
+            step = np.linalg.solve(A + lam[b, None, None] * diag + 1e-12 * eye,
+                                   g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        Q = P[b] + step
+        Q[:, 2] = np.clip(Q[:, 2], 0.2, 4.0)
+        Q[:, 4::2] = np.clip(Q[:, 4::2], -_REACH + 0.5, _REACH - 0.5)
+        fq, Jq = _model(Q, x[b], foot[b], steps)
+        cq = np.sum(w[b] * (m[b] - fq) ** 2, axis=1)
+        better = cq < cost[b]
+        ib = b[better]
+        small = better & (cost[b] - cq <= 1e-4 * cost[b])
+        P[ib], f[ib], J[ib], cost[ib] = Q[better], fq[better], Jq[better], cq[better]
+        lam[b] = np.where(better, lam[b] * 0.3, lam[b] * 10.0)
+        live[b[small | (lam[b] > 1e4)]] = False
+    Jw = J * w[..., None]
+    return P, cost, Jw.transpose(0, 2, 1) @ J
+
+
+_SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, ...
+_SPLITS = (0.0, 0.5, 1.0)  # ... the one step's place at the inner, middle, outer one
+
+
+def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
+               ) -> list[Band]:
+    """The sides of the quadrilateral ``corners`` (4, 2, frame pixels, cyclic order; in a
+    frame with ``lens`` distortion, measured in the ideal image) that lie between two
+    steps the same way, outside the inner one (module docstring); [] when none does, or
+    when two opposite sides do (a band all round lies inside the face, not beside it)."""
+    c = np.asarray(corners, float)
+    ci = c if lens is None else lens.undistort(c)
+    x, m, cnt, within, foot = _profiles(gray, ci, lens)
+    usable = cnt.sum(axis=1) >= 200
+    if not usable.any():
+        return []
+    # the bins weigh as many pixels as they hold: a least-squares fit to the pixels
+    lo = np.array([np.average(m[k, :20], weights=cnt[k, :20] + 1e-9) for k in range(4)])
+    hi = np.array([np.average(m[k, -20:], weights=cnt[k, -20:] + 1e-9) for k in range(4)])
+    c0 = hi - lo
+    held = cnt > 0
+    mid = np.where(held, (m - lo[:, None]) / np.where(c0 == 0, 1.0, c0)[:, None], 0.0)
+    d0 = np.array([x[k, held[k]][np.argmin(np.abs(mid[k, held[k]] - 0.5))] if held[k].any()
+                   else 0.0 for k in range(4)])  # where the profile is half-way
+    P1 = np.column_stack([lo, np.zeros(4), np.full(4, 0.7), c0, d0])
+    P1, cost1, _ = _fit(P1, x, m, cnt, foot, 1)
+    # one step fits a side between two steps worse than the others: only sides whose
+    # misfit (per pixel, over the step squared) is _WORSE times the best side's are
+    # fitted with two (a band all round is left alone anyway; that fit costs 2-3 ms a
+    # side)
+    misfit = cost1 / np.maximum(cnt.sum(axis=1) * P1[:, 3] ** 2, 1e-12)
+    usable &= misfit >= _WORSE * float(np.min(misfit[usable]))
+    if not usable.any():
+        return []
+    todo = np.flatnonzero(usable)
+    starts = [(sep, split) for sep in _SEPS for split in _SPLITS]
+    P2 = np.array([[a, 0.0, 0.6 * s1, cc / 2, d - split * sep, cc / 2, d - split * sep + sep]
+                   for (a, _g, s1, cc, d) in P1[todo] for sep, split in starts])
+    rows = np.repeat(todo, len(starts))
+    # a few steps from every start, then the best start of each side to the end (most
+    # starts of a side end in the same place; the others wander and cost iterations)
+    P2, cost2, _ = _fit(P2, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5)
+    best = [int(np.flatnonzero(rows == k)[np.argmin(cost2[rows == k])]) for k in todo]
+    P2, cost2, A2 = _fit(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2)
+    bands = []
+    for b, k in enumerate(todo):
+        _a, _g, s2, c1, d1, c2, d2 = P2[b]
+        inner, outer = (d1, d2) if d1 <= d2 else (d2, d1)
+        share = min(abs(c1), abs(c2)) / max(abs(c1) + abs(c2), 1e-9)
+        gain = float(cost1[k] / max(cost2[b], 1e-12))
+        # two steps that make the side's whole step between them (not two large ones
+        # cancelling each other over a sloping floor), each as sharp as one edge
+        whole = abs((c1 + c2) / c0[k] - 1.0) <= _WHOLE if c0[k] != 0 else False
+        if not (c1 * c2 > 0 and whole and s2 <= P1[k, 2] + _SHARPER and share >= _MIN_SHARE
+                and gain >= _MIN_GAIN
+                and outer - inner >= max(_MIN_SEP, _RESOLVED * s2)
+                and inner <= -_MIN_OFF and outer >= _MIN_OFF):
+            continue
+        # inner's standard error: the normal matrix scaled by the pixels' scatter about
+        # the fit (within the bins and the bins' about the model)
+        j = 4 if d1 <= d2 else 6
+        var_px = (float(cost2[b]) + within[k]) / max(float(cnt[k].sum()) - 7.0, 1.0)
+        try:
+            var = float(np.linalg.inv(A2[b])[j, j]) * var_px
+        except np.linalg.LinAlgError:
+            var = math.inf
+        bands.append(Band(int(k), float(inner), float(outer), float(share), gain,
+                          math.sqrt(max(var, 0.0))))
+    sides = {b.side for b in bands}
+    if any((k + 2) % 4 in sides for k in sides):
+        return []
+    return bands
