@@ -49,7 +49,7 @@ from alignd.vision.edges import (
 )
 from alignd.vision.holder_bands import side_bands
 from alignd.vision.holder_search import search_candidates
-from alignd.vision.holder_steps import inner_step
+from alignd.vision.holder_steps import inner_step, side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import fit_crossings_blur
 
@@ -581,10 +581,7 @@ def _off_the_bands(gray: np.ndarray, det: HolderDetection, lens: Lens | None,
         return det
     c = np.asarray(det.corners_px, float)
     ci = c if lens is None else lens.undistort(c)
-    nxt = ci[[1, 2, 3, 0]]
-    u = (nxt - ci) / np.linalg.norm(nxt - ci, axis=1)[:, None]
-    n = np.stack([-u[:, 1], u[:, 0]], axis=1)
-    n[np.sum(((ci + nxt) / 2 - ci.mean(axis=0)) * n, axis=1) < 0] *= -1
+    n = side_frame(ci)[2]
     shift = np.zeros(4)
     extra = 0.0
     for b in bands:

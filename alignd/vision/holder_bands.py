@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from alignd.vision.holder_steps import side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import step_response
 
@@ -80,12 +81,8 @@ def _profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None
     (4, bins), the pixels' spread within the bins (4,) and the sides' footprint widths
     (4, 2) (a pixel's square seen across the side: :func:`step_response`)."""
     h, w = gray.shape
-    nxt = ci[[1, 2, 3, 0]]
-    edge = nxt - ci
-    length = np.linalg.norm(edge, axis=1)
+    edge, length, n = side_frame(ci)
     u = edge / np.maximum(length, 1e-9)[:, None]
-    n = np.stack([-u[:, 1], u[:, 0]], axis=1)
-    n[np.sum(((ci + nxt) / 2 - ci.mean(axis=0)) * n, axis=1) < 0] *= -1
     nb = _EDGES.size - 1
     xs, ms, cnt = np.zeros((4, nb)), np.zeros((4, nb)), np.zeros((4, nb))
     within = np.zeros(4)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["InnerStep", "inner_step", "side_ratios"]
+__all__ = ["InnerStep", "inner_step", "side_frame", "side_ratios"]
 
 # levels are medians over positions along the middle 60 % of a side, each the mean of a
 # few pixels at a depth band (px, + outward): outside, just inside (and deeper inside)
@@ -66,8 +66,9 @@ def _interior(gray: np.ndarray, c: np.ndarray) -> float:
     return float(np.median(_sample_points(gray, p)))
 
 
-def _sides(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each side k's vector (corner k to k + 1), its length and its outward unit normal."""
+def side_frame(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each side k's vector (corner k to k + 1), its length and its outward unit normal,
+    of the quadrilateral ``c`` (4, 2, cyclic order)."""
     nxt = c[[1, 2, 3, 0]]
     edge = nxt - c
     length = np.linalg.norm(edge, axis=1)
@@ -84,7 +85,7 @@ def side_ratios(gray: np.ndarray, corners: np.ndarray
     under ``_MIN_STEP_DN``, or the holder is too narrow); and how deep "just inside" was
     (px: 4 for a soft side, 2 for a sharp one, see ``_NEAR``)."""
     c = np.asarray(corners, float)
-    edge, length, n = _sides(c)
+    edge, length, n = side_frame(c)
     zero = np.zeros(4)
     if length.min() < 8.0:
         return zero, zero, np.full(4, -_IN[1])
@@ -133,7 +134,7 @@ def inner_step(gray: np.ndarray, corners: np.ndarray) -> InnerStep | None:
     k = int(np.argmax(ratio))
     if ratio[k] < _MIN_RATIO:
         return None
-    edge, length, n = _sides(c)
+    edge, length, n = side_frame(c)
     far = min(_FAR_PX, 0.35 * float(length[(k + 1) % 4]))
     depth = _inner_depth(gray, c[k], edge[k] / length[k], n[k], float(length[k]), far,
                          float(start[k]))
