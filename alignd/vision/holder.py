@@ -20,7 +20,9 @@ the angle between its diagonal and its long side (34 deg for 60 x 40 mm), so it 
 
 A detection that fails a check (too few edge columns, poor line fit, low contrast, wrong
 size, not convex) is returned with ``ok`` False and NaN for the affected corners: never a
-wrong point. A blank, saturated or target-free image raises VisionError.
+wrong point. A side found between the two steps of a narrow band beside it (a hard
+shadow's) is moved in to the inner one, the holder's edge
+(:mod:`alignd.vision.holder_bands`). A blank, saturated or target-free image raises VisionError.
 """
 
 from __future__ import annotations
