@@ -26,7 +26,7 @@ from alignd.vision import holder
 from alignd.vision.holder import order_corners, track_holder
 from alignd.vision.holder_bands import side_bands
 from drivers.sim.render import Polygon, Raster, coverage
-from drivers.sim.scenes import rectangle
+from drivers.sim.scenes import hard_shadow_scene, rectangle
 
 _W, _H = 640, 480
 _RAS = Raster((_W, _H), 1000.0, (_W / 2, _H / 2), 0.0)
@@ -199,19 +199,9 @@ _WIDE_RAS = Raster((_WIDE_W, _WIDE_H), 1000.0, (_WIDE_W / 2, _WIDE_H / 2), 0.0)
 
 def _hard_shadow(offset_px: float, angle_deg: float, seed: int = 0
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """A sharp dark 303 x 193 px holder (85 DN, blur 0.49 px) on a bright disc (210 DN)
-    with its hard cast shadow (128 DN) shifted (offset_px, -0.73) px: a band a few px
-    wide beside two sides, one step the same way as the side's own (corpus #639 of seed
-    6100: returned 1.45 px off). The frame and the holder's corners."""
-    held = rectangle((492.4, 221.1), 303.2, 193.0, angle_deg)
-    box = (0, 0, _WIDE_W, _WIDE_H)
-    img = np.full((_WIDE_H, _WIDE_W), 210.0)
-    img += (128.0 - img) * coverage(Polygon(held + np.array([offset_px, -0.73])), _WIDE_RAS,
-                                    box)
-    img += (85.0 - img) * coverage(Polygon(held), _WIDE_RAS, box)
-    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.49)
-    noise = np.random.default_rng(seed).normal(0, 0.8, img.shape)
-    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
+    """A sharp dark holder with its hard cast shadow a few px beside two sides
+    (:func:`drivers.sim.scenes.hard_shadow_scene`): the frame and the holder's corners."""
+    return hard_shadow_scene(offset_px, angle_deg, seed)
 
 
 @pytest.mark.parametrize("angle_deg", [-16.8, 20.0])

@@ -51,6 +51,7 @@ __all__ = [
     "SideSceneSample",
     "TopSceneSample",
     "ellipse_conic",
+    "hard_shadow_scene",
     "random_rim_scene",
     "random_side_scene",
     "random_top_scene",
@@ -578,6 +579,28 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
     params.update(blur_px=blur, read_noise_dn=read_noise, electrons_per_dn=electrons_per_dn)
     return TopSceneSample(out, cat, corners, (max(L_mm, S_mm), min(L_mm, S_mm)), px_um, pol,
                           (focal, principal, k1) if k1 else None, enc, params)
+
+
+def hard_shadow_scene(offset_px: float, angle_deg: float, seed: int = 0,
+                      levels: tuple[float, float, float] = (210.0, 128.0, 85.0)
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """A sharp dark 303 x 193 px holder in a 1280 x 720 frame (``levels``: disc, shadow,
+    holder DN; blur 0.49 px, noise 0.8 DN) with its hard cast shadow shifted by
+    (``offset_px``, -0.73) px: a band that wide beside one or two sides, stepping the
+    same way as the side (a small lamp's shadow; corpus #639 of seed 6100 had one, 5 px
+    wide). Not in the random corpus, whose cast shadows are soft. The 8-bit frame and
+    the holder's corners (exact pixel-area coverage)."""
+    w, h = 1280, 720
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    disc, shade, dark = levels
+    held = rectangle((492.4, 221.1), 303.2, 193.0, angle_deg)
+    box = (0, 0, w, h)
+    img = np.full((h, w), disc)
+    img += (shade - img) * coverage(Polygon(held + np.array([offset_px, -0.73])), ras, box)
+    img += (dark - img) * coverage(Polygon(held), ras, box)
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.49)
+    noise = np.random.default_rng(seed).normal(0, 0.8, img.shape)
+    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
 
 
 def _holder_furniture(rng: np.random.Generator, img: np.ndarray, holder: np.ndarray,
