@@ -574,10 +574,10 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
 def _off_the_bands(gray: np.ndarray, det: HolderDetection, lens: Lens | None,
                    expected_size_px: tuple[float, float] | None, size_tolerance: float
                    ) -> HolderDetection:
-    """``det`` with each side that lies between two steps (a hard shadow's band beside
-    it, :func:`alignd.vision.holder_bands.side_bands`) moved in to the inner step, the
-    holder's edge; its corners' sigma grows by that step's standard error. Not ok when the
-    moved holder's size fails the size check."""
+    """``det`` with each side found between two steps or on the outer one (a hard
+    shadow's band beside it, :func:`alignd.vision.holder_bands.side_bands`) moved in to
+    the inner step, the holder's edge; its corners' sigma grows by that step's standard
+    error. Not ok when the moved holder's size fails the size check."""
     bands = side_bands(gray, det.corners_px, lens)
     if not bands:
         return det

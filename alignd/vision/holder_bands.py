@@ -15,12 +15,18 @@ fitted by one blurred step and by two steps of one blur, each with the levels' l
 slope and a pixel's exact response (:func:`alignd.vision.profile_fit.step_response`; an
 erf instead read a sharp edge's pixel squares as two steps 1 px apart). A side whose
 profile two steps of the same sign fit far better, resolved, the smaller a fair share of
-both, the found side 0.3 px or more outside the inner one, lies between two edges. The
-holder's own edge is the inner step: a shadow, a strip or a wall lies outside the top
-face. (A band inside the face along one side would read the same way: a chamfer lit
-apart, a label flush with the edge; a band along opposite sides is taken for such and
-left alone, see :func:`side_bands`.) A band narrower than about 1 px is not resolved
-from the edge's own blur and still moves the side by up to half a pixel.
+both, lies beside a band when the found side is 0.3 px or more outside the inner step:
+between the two, or on the outer one (a band nearly as dark as the holder merges with
+it) with the inner one at most 4.5 px in. The holder's own edge is the inner step: a
+shadow, a strip or a wall lies outside the top face. (A band inside the face along one
+side reads the same way, and is cut off: a chamfer lit apart, a label flush with the
+edge. Its inner edge is then a rigid edge of the holder all the same, while a shadow's
+outer edge moves with the light. A band along opposite sides is taken for such and left
+alone, see :func:`side_bands`.) A side along the pixel rows samples its profile once a
+pixel, and there a blur not quite Gaussian fits two steps about 1 px apart far better
+than one: such a side must also misfit one step by more than a blur's shape can. A band
+narrower than about 1 px is not resolved from the edge's own blur and still moves the
+side by up to half a pixel.
 """
 
 from __future__ import annotations
@@ -44,19 +50,27 @@ _EDGES = np.arange(-_REACH, _REACH + _BIN / 2, _BIN)
 # side _MIN_GAIN times better than one, their sum within _WHOLE of the side's whole step
 # (tails to tails), their blur at most _SHARPER px over the one step's, at least _MIN_SEP
 # px and _RESOLVED blurs apart (a defocus that is not Gaussian fits two steps 1.3 blurs
-# apart better than one), the smaller at least _MIN_SHARE of both, and the found side at
-# least _MIN_OFF px outside the inner one and _MIN_IN px inside the outer one (our own
-# renderer's sample edge 0.86 px inside the holder's: 0.12-0.14 px and 15-17 %).
-# Synthetic hard bands 1.5-4 px: gains 6-2500, shares 0.34-0.36; eight corpora of 1001
-# scenes: one scene moved, 0.59 -> 0.31 px.
+# apart better than one), the smaller at least _MIN_SHARE of both (bands nearly as dark
+# as the holder: 0.18-0.20), and the found side at least _MIN_OFF px outside the inner
+# one and either _MIN_IN px inside the outer one or within _ON_OUTER px of it with the
+# inner one at most _MAX_IN px in (farther in, a second step 5-7 px inside a corpus face
+# is not a band). A side not sampled finely (_GAP) must misfit one step by _MIN_MISS of
+# its step: our renderer's holder at 0 deg, one sample a pixel, misfits by 0.8-0.9 %
+# (two steps 0.9 px apart fit it 55 times better), bands of 1.5-3 px by 2.2-8.5 %.
+# Synthetic hard bands 1.5-4 px: gains 6-8000; eight corpora of 1001 scenes: one scene
+# moved, 0.59 -> 0.31 px.
 _MIN_GAIN = 3.0
 _WHOLE = 0.3
 _SHARPER = 0.3
 _MIN_SEP = 0.6
 _RESOLVED = 1.5
-_MIN_SHARE = 0.2
+_MIN_SHARE = 0.15
 _MIN_OFF = 0.3
 _MIN_IN = 0.2
+_ON_OUTER = 0.5
+_MAX_IN = 4.5
+_GAP = 0.6  # of a pixel's footprint across the side: the largest gap between distances
+_MIN_MISS = 0.015
 _WORSE = 2.0  # only sides one step fits this many times worse than the best side get two
 
 
@@ -181,6 +195,33 @@ def _fit(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.nd
     return P, cost, Jw.transpose(0, 2, 1) @ J
 
 
+def _sampled(x: np.ndarray, cnt: np.ndarray, inner: float, outer: float, foot: np.ndarray
+             ) -> bool:
+    """Whether the pixels sample the profile over the band and 1.5 px either side of it
+    at least twice a pixel's footprint across the side (no gap between their distances
+    over ``_GAP`` of it): a slanted side does, a side along the pixel rows samples it
+    once a footprint."""
+    d = np.sort(x[(cnt > 0) & (x > inner - 1.5) & (x < outer + 1.5)])
+    if d.size < 2:
+        return False
+    gaps = np.diff(np.concatenate([[inner - 1.5], d, [outer + 1.5]]))
+    return float(np.max(gaps)) <= _GAP * float(foot[0] + foot[1])
+
+
+def _misfit(x: np.ndarray, r: np.ndarray, cnt: np.ndarray, inner: float, outer: float
+            ) -> float:
+    """The one step's rms misfit (``r``: the bins' residuals) over the band and 1.5 px
+    either side of it, in DN. A blur not quite Gaussian misfits a clean edge by up to
+    about 1 % of its step, and where the pixels sample the profile only once a pixel (a
+    side along the rows) two steps about 1 px apart then fit that edge far better than
+    one (our renderer's holder at 0 deg: 0.8-0.9 % misfit, two steps 55 times better); a
+    band of 1.5 px or more misfits by 2 % of the step and more."""
+    near = (cnt > 0) & (x > inner - 1.5) & (x < outer + 1.5)
+    if not near.any():
+        return 0.0
+    return math.sqrt(float(np.sum(cnt[near] * r[near] ** 2) / np.sum(cnt[near])))
+
+
 _SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, ...
 _SPLITS = (0.0, 0.5, 1.0)  # ... the one step's place at the inner, middle, outer one
 
@@ -188,9 +229,10 @@ _SPLITS = (0.0, 0.5, 1.0)  # ... the one step's place at the inner, middle, oute
 def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
                ) -> list[Band]:
     """The sides of the quadrilateral ``corners`` (4, 2, frame pixels, cyclic order; in a
-    frame with ``lens`` distortion, measured in the ideal image) that lie between two
-    steps the same way, outside the inner one (module docstring); [] when none does, or
-    when two opposite sides do (a band all round lies inside the face, not beside it)."""
+    frame with ``lens`` distortion, measured in the ideal image) found between two steps
+    the same way or on the outer one, outside the inner one (module docstring); [] when
+    none is, or when two opposite sides are (a band all round lies inside the face, not
+    beside it)."""
     c = np.asarray(corners, float)
     ci = c if lens is None else lens.undistort(c)
     x, m, cnt, within, foot = _profiles(gray, ci, lens)
@@ -207,6 +249,7 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
                    else 0.0 for k in range(4)])  # where the profile is half-way
     P1 = np.column_stack([lo, np.zeros(4), np.full(4, 0.7), c0, d0])
     P1, cost1, _ = _fit(P1, x, m, cnt, foot, 1)
+    f1, _ = _model(P1, x, foot, 1)
     # one step fits a side between two steps worse than the others: only sides whose
     # misfit (per pixel, over the step squared) is _WORSE times the best side's are
     # fitted with two (a band all round is left alone anyway; that fit costs 2-3 ms a
@@ -234,10 +277,15 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
         # two steps that make the side's whole step between them (not two large ones
         # cancelling each other over a sloping floor), each as sharp as one edge
         whole = abs((c1 + c2) / c0[k] - 1.0) <= _WHOLE if c0[k] != 0 else False
+        # the found side between the steps, or on the outer one with the inner one near
+        between = outer >= _MIN_IN or (abs(outer) <= _ON_OUTER and inner >= -_MAX_IN)
         if not (c1 * c2 > 0 and whole and s2 <= P1[k, 2] + _SHARPER and share >= _MIN_SHARE
                 and gain >= _MIN_GAIN
                 and outer - inner >= max(_MIN_SEP, _RESOLVED * s2)
-                and inner <= -_MIN_OFF and outer >= _MIN_IN):
+                and inner <= -_MIN_OFF and between
+                and (_sampled(x[k], cnt[k], inner, outer, foot[k])
+                     or _misfit(x[k], m[k] - f1[k], cnt[k], inner, outer)
+                     >= _MIN_MISS * abs(c0[k]))):
             continue
         # inner's standard error: the normal matrix scaled by the pixels' scatter about
         # the fit (within the bins and the bins' about the model)
