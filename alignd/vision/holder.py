@@ -526,7 +526,8 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             agree = moved <= (_AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px
                               + max(_CLIP_AGREE_PX, _clip_offset(used, fine, widths)))
         if (det3.ok and not agree and hw == _HALF_WIDTH
-                and np.nanmax(widths, initial=0.0) > _SOFT_BLUR_PX):
+                and np.nanmax(widths / _window_reach(corners), initial=0.0)
+                > _SOFT_BLUR_PX):
             # a soft side's transition overflows the area method's +-5 px, which then
             # errs by 0.1-0.3 px itself (its tails inside the blur): a second opinion in
             # +-9 px may confirm the refined corners (the +-5 px ones stay the fallback)
@@ -569,6 +570,14 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         if bands:
             det = _off_the_bands(gray, det, lens, expected_size_px, size_tolerance)
     return det
+
+
+def _window_reach(corners: np.ndarray) -> np.ndarray:
+    """Per side, how far the area method's windows reach across it per px along their
+    pixel column or row: the cosine of its angle to the nearest image axis (a side at 45
+    deg is crossed by its +-5 px windows over +-3.5 px only)."""
+    n = side_frame(np.asarray(corners, float))[2]
+    return np.max(np.abs(n), axis=1)
 
 
 def _off_the_bands(gray: np.ndarray, det: HolderDetection, lens: Lens | None,
