@@ -45,6 +45,10 @@ __all__ = ["SIGN_CONVENTION", "SideEdge", "SideMeasurement", "TiltAverage", "bas
            "find_vertical_edges", "measure_tilt", "measure_tilt_frames"]
 
 
+# a bar's inside within this share of its edges' contrast of the image's outer level is
+# the background (see _background_gaps)
+_BACKGROUND_LEVEL = 0.3
+
 @dataclass(frozen=True)
 class SideEdge:
     """One near-vertical edge: its angle, position, extent and fit."""
@@ -276,16 +280,53 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
                    band_angle_deg=fit.band_angle_deg, rms_dn=fit.rms_dn)
 
 
-def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
-    """The rod: the narrowest pair of x-adjacent edges of opposite polarity."""
-    best: tuple[float, list[SideEdge]] | None = None
+def _pole_pair(edges: list[SideEdge], max_width_px: float,
+               background: bool = False) -> list[SideEdge]:
+    """The rod: the narrowest pair of x-adjacent edges of opposite polarity. With
+    ``background`` (the automatic mode), not a pair that bounds the background (see
+    :func:`_background_gaps`), and VisionError where two such pairs share an edge."""
     srt = sorted(edges, key=lambda e: e.x_mid_px)
-    for a, b in itertools.pairwise(srt):
-        d = b.x_mid_px - a.x_mid_px
-        if a.contrast * b.contrast < 0 and d <= max_width_px and abs(
-                a.angle_deg - b.angle_deg) < 0.5 and (best is None or d < best[0]):
-            best = (d, [a, b])
-    return best[1] if best else []
+    gaps = _background_gaps(srt) if background else set()
+    bars = {k: b.x_mid_px - a.x_mid_px for k, (a, b) in enumerate(itertools.pairwise(srt))
+            if a.contrast * b.contrast < 0 and b.x_mid_px - a.x_mid_px <= max_width_px
+            and abs(a.angle_deg - b.angle_deg) < 0.5 and k not in gaps}
+    if not bars:
+        return []
+    k = min(bars, key=lambda j: bars[j])
+    if background and (k - 1 in bars or k + 1 in bars):
+        # two bars side by side, both on one level's background as far as the levels tell
+        # (a pole beside a sample of its own level that runs off the frame): either could
+        # be the pole, and the other the gap between it and what lies beyond
+        j = k - 1 if k - 1 in bars else k + 1
+        raise VisionError(
+            f"side image: the reference pole is ambiguous: bars side by side at x "
+            f"{srt[min(j, k)].x_mid_px:.0f}-{srt[min(j, k) + 1].x_mid_px:.0f} and "
+            f"{srt[max(j, k)].x_mid_px:.0f}-{srt[max(j, k) + 1].x_mid_px:.0f} px, either "
+            "could be the pole and the other the gap beside it; set side_camera.pole_roi_px "
+            "and sample_roi_px")
+    return [srt[k], srt[k + 1]]
+
+
+def _background_gaps(edges: list[SideEdge]) -> set[int]:
+    """Which x-adjacent pairs of ``edges`` (sorted by x; pair k: edges k and k + 1) cannot
+    be the pole: the gap between the pole and a full-height sample is a bar too, and
+    where it was the narrower it was taken for the pole (a tilt from the pole's and the
+    sample's facing edges). The levels between the edges follow from their contrasts. A
+    pole stands on the background, which lies on both its sides at one level: a pair whose
+    outer neighbours' levels differ is not the pole; and where the image's two outer
+    levels agree (the background at both ends), neither is a pair whose inside is at that
+    level (the gap between a pole and a sample of one level)."""
+    if len(edges) < 2:
+        return set()
+    c = np.array([e.contrast for e in edges])
+    level = np.concatenate([[0.0], np.cumsum(c)])  # level[k]: left of edge k (k = n: right)
+    ends_agree = abs(level[-1]) <= _BACKGROUND_LEVEL * float(np.median(np.abs(c)))
+    out = set()
+    for k in range(len(edges) - 1):
+        tol = _BACKGROUND_LEVEL * min(abs(c[k]), abs(c[k + 1]))
+        if abs(level[k] - level[k + 2]) > tol or (ends_agree and abs(level[k + 1]) <= tol):
+            out.add(k)
+    return out
 
 
 def _auto_pole(edges: list[SideEdge], h: int, min_fraction: float,
@@ -293,7 +334,8 @@ def _auto_pole(edges: list[SideEdge], h: int, min_fraction: float,
     """The pole unaided: a narrow bar whose edges run through the whole height; failing
     that, 90 % of it (uneven light, ends)."""
     for frac in (min_fraction, 0.9):
-        pole = _pole_pair([e for e in edges if _spans(e, h, frac)], max_width_px)
+        pole = _pole_pair([e for e in edges if _spans(e, h, frac)], max_width_px,
+                          background=True)
         if pole:
             return pole
     return []
