@@ -7,6 +7,7 @@ side has the holder's own level just inside it; the band's outer edge has the ba
 from __future__ import annotations
 
 import math
+import re
 
 import cv2
 import numpy as np
@@ -116,3 +117,31 @@ def test_a_dark_label_near_a_side_is_not_a_shadow() -> None:
     det = track_holder(img, expected_size_px=(_L, _S))
     assert det.ok, det.reason
     assert _corner_error(det.corners_px, c) < 0.3
+
+
+@pytest.mark.parametrize("angle_deg", [-12.0, 7.0, 31.0])
+def test_a_strip_darker_than_the_holder_along_a_side_is_not_taken_into_it(
+        angle_deg: float) -> None:
+    """A thin sample darker than a dark holder (20 against 60 DN, on a 190 DN disc),
+    standing flush along its long side, seen from above as an 8 px strip: holder and strip
+    make one dark rectangle 4 % too wide, inside the size tolerance, and it was returned
+    ok, 8 px wrong. The band just inside that side steps away from the outside's level,
+    not toward it, and is flagged all the same; the size puts the side at the inner step,
+    where the holder's edge is lighter than the strip (the other polarity), so it is
+    refused rather than returned wrong."""
+    w, h = 1280, 720
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    t = math.radians(angle_deg)
+    u, v = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
+    ctr = np.array([640.4, 360.1])
+    held = _rect(ctr, u, v, -151.6, 151.6, 96.5)
+    strip = _rect(ctr - 100.5 * v, u, v, -151.6, 151.6, 4.0)
+    box = (0, 0, w, h)
+    ch, cs = coverage(Polygon(held), ras, box), coverage(Polygon(strip), ras, box)
+    img = 190.0 * np.clip(1.0 - ch - cs, 0.0, 1.0) + 60.0 * ch + 20.0 * cs
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.7)
+    img += np.random.default_rng(1).normal(0.0, 1.0, img.shape).astype(np.float32)
+    det = track_holder(np.clip(np.rint(img), 0, 255).astype(np.uint8),
+                       expected_size_px=(303.2, 193.0))
+    assert not det.ok or _corner_error(det.corners_px, held) < 1.0
+    assert not det.ok and re.search(r"second step [89] px inside", det.reason)

@@ -356,8 +356,8 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
                   expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
                   min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None,
                   size_tolerance: float, profile: bool) -> HolderDetection:
-    """``det``, unless one of its sides is a shadow's outer edge (a second step the same
-    way just inside it, :func:`alignd.vision.holder_steps.inner_step`, that the expected
+    """``det``, unless one of its sides is a shadow's outer edge (a second step just
+    inside it, :func:`alignd.vision.holder_steps.inner_step`, that the expected
     size puts the holder's side at): then the holder measured again with that side moved
     in to the inner step, or not ok with the reason. Never a holder a shadow's width too
     large. The levels alone cannot tell a shadow band beyond a side from a shadow's edge
@@ -380,9 +380,9 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
         return det  # the inner step lies across the holder: the side is where it should be
     moved = c.copy()
     moved[[k, (k + 1) % 4]] += step.depth_px * np.asarray(step.inward)
-    why = (f"side {k} has a second step the same way {step.depth_px:.0f} px inside it "
+    why = (f"side {k} has a second step {step.depth_px:.0f} px inside it "
            f"({100 * step.ratio:.0f} % of its own), where the holder's size puts the side "
-           "(a shadow's edge taken for the side?)")
+           "(a shadow's or a strip's edge taken for the side?)")
     try:
         again = _refine(gray, order_corners(moved), polarity, expected_size_px, hint,
                         min_contrast, max_rms_px, passes, lens, size_tolerance, profile)

@@ -7,9 +7,12 @@ side and still pass every other check: it is straight, of the right polarity, an
 band a tenth of the holder wide it is within the size tolerance. It is then wrong by the
 band's width (16 px on a corpus scene). A true side has the holder's own level just inside
 it; a shadow's edge has the band's level there, between the holder's and the outside's.
-A sample strip darker than the disc beside a dark holder is such a band too. (A label or
-a sample on the holder near a side does not look like that: the level just inside is the
-holder's, whatever lies further in.)
+A sample strip darker than the disc beside a dark holder is such a band too. So, stepping
+the other way, is a strip darker still than a dark holder standing flush along its side
+(a thin dark sample seen from above): holder and strip read as one larger dark rectangle,
+an 8 px strip 8 px wrong, within the size tolerance. (A label or a sample on the holder
+near a side does not look like either: the level just inside is the holder's, whatever
+lies further in.)
 """
 
 from __future__ import annotations
@@ -39,8 +42,8 @@ _MIN_STEP_DN = 8.0  # and at least this, in grey levels (texture and noise stay 
 
 @dataclass(frozen=True)
 class InnerStep:
-    """Side ``side`` (from corner ``side`` to ``side + 1``) has a second step of the
-    same sign ``depth_px`` inside it: the holder's true side is likely there."""
+    """Side ``side`` (from corner ``side`` to ``side + 1``) has a second step
+    ``depth_px`` inside it: the holder's true side is likely there."""
 
     side: int
     ratio: float  # the inner step over the side's own step
@@ -81,9 +84,10 @@ def side_ratios(gray: np.ndarray, corners: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per side of ``corners`` (4, 2, cyclic order): the level just inside it minus the
     level deeper inside (``_FAR_PX``, at most 0.35 of the extent across), and minus the
-    holder's interior level, each over the side's own step (0 where of the other sign, or
-    under ``_MIN_STEP_DN``, or the holder is too narrow); and how deep "just inside" was
-    (px: 4 for a soft side, 2 for a sharp one, see ``_NEAR``)."""
+    holder's interior level, each in size over the side's own step (0 where the two
+    differ in sign, or either is under ``_MIN_STEP_DN``, or the holder is too narrow);
+    and how deep "just inside" was (px: 4 for a soft side, 2 for a sharp one, see
+    ``_NEAR``)."""
     c = np.asarray(corners, float)
     edge, length, n = side_frame(c)
     zero = np.zeros(4)
@@ -116,17 +120,20 @@ def side_ratios(gray: np.ndarray, corners: np.ndarray
     to_level = np.median(inn, axis=1) - _interior(gray, c)
     ok = (np.abs(step) > 1e-6) & (far > -_IN[0])
     out_r = []
+    # the band just inside toward the outside's level (a shadow's band), or away from it
+    # (a strip darker than a dark holder along it): both bands one way
+    agree = to_deep * to_level > 0
     for d in (to_deep, to_level):
-        good = ok & (d * step > 0) & (np.abs(d) >= _MIN_STEP_DN)
-        out_r.append(np.where(good, d / np.where(good, step, 1.0), 0.0))
+        good = ok & agree & (np.abs(d) >= _MIN_STEP_DN)
+        out_r.append(np.where(good, np.abs(d) / np.where(good, np.abs(step), 1.0), 0.0))
     return out_r[0], out_r[1], np.where(sharp, -_NEAR[1], -_IN[1])
 
 
 def inner_step(gray: np.ndarray, corners: np.ndarray) -> InnerStep | None:
     """The side of the quadrilateral ``corners`` (4, 2, in cyclic order) whose inside
-    band differs most, toward the outside's level, from both the holder's level (its
-    interior's median) and the level deeper inside, with a step between the two: a
-    shadow's edge taken for the side; else None. (Tracking runs it every frame: the four
+    band differs most, one way, from both the holder's level (its interior's median) and
+    the level deeper inside, with a step between the two: a shadow's edge (or a strip's
+    along the holder) taken for the side; else None. (Tracking runs it every frame: the four
     sides' bands are read in one go, about 0.3 ms.)"""
     c = np.asarray(corners, float)
     r_deep, r_level, start = side_ratios(gray, c)
