@@ -89,6 +89,9 @@ _ROUGH_SIDE_RATIO = 3.0
 # cannot be one flat face's (see _unlike_opposite_blurs)
 _BLUR_UNLIKE_PX, _BLUR_UNLIKE_RATIO = 1.2, 3.0
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
+# area corners this far (px) from the corners their windows were placed from: the windows
+# were misplaced, and a refined fit they disagree with is checked against them placed again
+_MISPLACED_PX = 1.0
 _HALF_WIDTH = 5  # the fine edge window: +-5 px (+-9 px for soft edges)
 _WIDE = 9
 # the area method's windows stop this far (px along a side) short of the corners, where the
@@ -538,6 +541,23 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                 moved = float(np.max(np.linalg.norm(det3.corners_px - det9.corners_px,
                                                     axis=1)))
                 agree = moved <= _AGREE_PX + _AGREE_SIGMA * det9.fit_sigma_px
+        if det3.ok and not agree and float(np.max(np.linalg.norm(
+                det.corners_px - corners, axis=1))) > _MISPLACED_PX:
+            # the windows lie between the corners searched from; where those were a few
+            # px off along a side (a rectangle's corners on a keystoned holder), the end
+            # windows reach past a true corner and the area method errs there itself
+            # (0.1-0.2 px): its own corners place them once more, and where they then fit
+            # at least as well (misplaced windows, not a misfit), they may confirm the
+            # refined corners (an uncertain area fit placed again from its own wrong
+            # corners loosened the test and let a holder 3.4 px wrong through; from
+            # corners within a px, a penumbra fooled both alike)
+            again = _fit_sides(gray, det.corners_px, hw, margin, min_contrast, lens)
+            det2 = _assemble(again, det.corners_px, pol, expected_size_px, hint, max_rms_px,
+                             lens, size_tolerance, inflate=False)
+            if det2.ok and det2.fit_sigma_px <= det.fit_sigma_px:
+                moved = float(np.max(np.linalg.norm(det3.corners_px - det2.corners_px,
+                                                    axis=1)))
+                agree = moved <= _AGREE_PX + _AGREE_SIGMA * det2.fit_sigma_px
         if agree:
             det = replace(det3, side_blur_px=tuple(
                 float(v) for v in widths[_side_match(corners, det3.corners_px)]))
