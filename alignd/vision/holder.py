@@ -450,7 +450,7 @@ def _seed_holds(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray
         return False
     if lens is not None:
         new = lens.distort(new)
-    return float(np.max(np.linalg.norm(new - corners, axis=1))) <= 1.0
+    return _shift(new, corners) <= 1.0
 
 
 def _locate(gray: np.ndarray, corners: np.ndarray, min_contrast: float, passes: int,
@@ -522,8 +522,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         # two estimates of the same corners must agree within the area method's
         # uncertainty; where they do not, the model did not fit (a penumbra, a hole in
         # the window) and the model-free area method's corners stand
-        moved = float(np.max(np.linalg.norm(det3.corners_px - det.corners_px, axis=1))) \
-            if det3.ok else math.inf
+        moved = _shift(det3.corners_px, det.corners_px) if det3.ok else math.inf
         agree = moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px
         if det3.ok and not agree and _clipped_share(gray, used) > _CLIP_SHARE:
             agree = moved <= (_AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px
@@ -538,11 +537,9 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             det9 = _assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
                              size_tolerance, inflate=False)
             if det9.ok:
-                moved = float(np.max(np.linalg.norm(det3.corners_px - det9.corners_px,
-                                                    axis=1)))
+                moved = _shift(det3.corners_px, det9.corners_px)
                 agree = moved <= _AGREE_PX + _AGREE_SIGMA * det9.fit_sigma_px
-        if det3.ok and not agree and float(np.max(np.linalg.norm(
-                det.corners_px - corners, axis=1))) > _MISPLACED_PX:
+        if det3.ok and not agree and _shift(det.corners_px, corners) > _MISPLACED_PX:
             # the windows lie between the corners searched from; where those were a few
             # px off along a side (a rectangle's corners on a keystoned holder), the end
             # windows reach past a true corner and the area method errs there itself
@@ -555,8 +552,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             det2 = _assemble(again, det.corners_px, pol, expected_size_px, hint, max_rms_px,
                              lens, size_tolerance, inflate=False)
             if det2.ok and det2.fit_sigma_px <= det.fit_sigma_px:
-                moved = float(np.max(np.linalg.norm(det3.corners_px - det2.corners_px,
-                                                    axis=1)))
+                moved = _shift(det3.corners_px, det2.corners_px)
                 agree = moved <= _AGREE_PX + _AGREE_SIGMA * det2.fit_sigma_px
         if agree:
             det = replace(det3, side_blur_px=tuple(
@@ -590,6 +586,11 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         if bands:
             det = _off_the_bands(gray, det, lens, expected_size_px, size_tolerance)
     return det
+
+
+def _shift(a: np.ndarray, b: np.ndarray) -> float:
+    """The largest distance between corresponding corners of ``a`` and ``b`` (px)."""
+    return float(np.max(np.linalg.norm(np.asarray(a) - np.asarray(b), axis=1)))
 
 
 def _window_reach(corners: np.ndarray) -> np.ndarray:

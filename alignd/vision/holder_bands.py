@@ -195,31 +195,26 @@ def _fit(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.nd
     return P, cost, Jw.transpose(0, 2, 1) @ J
 
 
-def _sampled(x: np.ndarray, cnt: np.ndarray, inner: float, outer: float, foot: np.ndarray
-             ) -> bool:
-    """Whether the pixels sample the profile over the band and 1.5 px either side of it
-    at least twice a pixel's footprint across the side (no gap between their distances
-    over ``_GAP`` of it): a slanted side does, a side along the pixel rows samples it
-    once a footprint."""
-    d = np.sort(x[(cnt > 0) & (x > inner - 1.5) & (x < outer + 1.5)])
-    if d.size < 2:
-        return False
-    gaps = np.diff(np.concatenate([[inner - 1.5], d, [outer + 1.5]]))
-    return float(np.max(gaps)) <= _GAP * float(foot[0] + foot[1])
-
-
-def _misfit(x: np.ndarray, r: np.ndarray, cnt: np.ndarray, inner: float, outer: float
-            ) -> float:
-    """The one step's rms misfit (``r``: the bins' residuals) over the band and 1.5 px
-    either side of it, in DN. A blur not quite Gaussian misfits a clean edge by up to
-    about 1 % of its step, and where the pixels sample the profile only once a pixel (a
-    side along the rows) two steps about 1 px apart then fit that edge far better than
-    one (our renderer's holder at 0 deg: 0.8-0.9 % misfit, two steps 55 times better); a
-    band of 1.5 px or more misfits by 2 % of the step and more."""
+def _resolvable(x: np.ndarray, r: np.ndarray, cnt: np.ndarray, inner: float, outer: float,
+                foot: np.ndarray, step: float) -> bool:
+    """Whether two steps at ``inner`` and ``outer`` can be told from one on these bins
+    (``x`` distances, ``r`` the one step's residuals, ``cnt`` pixels), over the band and
+    1.5 px either side of it: the pixels sample it at least twice a pixel's footprint
+    across the side (no gap between their distances over ``_GAP`` of it, as on a slanted
+    side), or the one step misfits it by ``_MIN_MISS`` of ``step`` (rms). A side along
+    the pixel rows samples its profile once a footprint, and there a blur not quite
+    Gaussian misfits a clean edge by up to about 1 % of its step, which two steps about
+    1 px apart fit far better (our renderer's holder at 0 deg: 0.8-0.9 %, 55 times
+    better); a band of 1.5 px or more misfits by 2 % and more."""
     near = (cnt > 0) & (x > inner - 1.5) & (x < outer + 1.5)
     if not near.any():
-        return 0.0
-    return math.sqrt(float(np.sum(cnt[near] * r[near] ** 2) / np.sum(cnt[near])))
+        return False
+    d = np.sort(x[near])
+    gaps = np.diff(np.concatenate([[inner - 1.5], d, [outer + 1.5]]))
+    if d.size >= 2 and float(np.max(gaps)) <= _GAP * float(foot[0] + foot[1]):
+        return True
+    miss = math.sqrt(float(np.sum(cnt[near] * r[near] ** 2) / np.sum(cnt[near])))
+    return miss >= _MIN_MISS * abs(step)
 
 
 _SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, ...
@@ -283,9 +278,8 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
                 and gain >= _MIN_GAIN
                 and outer - inner >= max(_MIN_SEP, _RESOLVED * s2)
                 and inner <= -_MIN_OFF and between
-                and (_sampled(x[k], cnt[k], inner, outer, foot[k])
-                     or _misfit(x[k], m[k] - f1[k], cnt[k], inner, outer)
-                     >= _MIN_MISS * abs(c0[k]))):
+                and _resolvable(x[k], m[k] - f1[k], cnt[k], inner, outer, foot[k],
+                                float(c0[k]))):
             continue
         # inner's standard error: the normal matrix scaled by the pixels' scatter about
         # the fit (within the bins and the bins' about the model)

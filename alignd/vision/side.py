@@ -45,9 +45,10 @@ __all__ = ["SIGN_CONVENTION", "SideEdge", "SideMeasurement", "TiltAverage", "bas
            "find_vertical_edges", "measure_tilt", "measure_tilt_frames"]
 
 
-# a bar's inside within this share of its edges' contrast of the image's outer level is
-# the background (see _background_gaps)
+# levels within this share of a pair's smaller contrast count as one (the background's
+# on both sides of a pole, or inside a gap: see _background_gaps)
 _BACKGROUND_LEVEL = 0.3
+
 
 @dataclass(frozen=True)
 class SideEdge:
