@@ -625,8 +625,8 @@ def _off_the_bands(gray: np.ndarray, det: HolderDetection, lens: Lens | None,
     for k in range(4):
         A = np.array([n[k - 1], n[k]])
         out[k] = ci[k] + np.linalg.solve(A, np.array([shift[k - 1], shift[k]]))
-    side = [float(np.linalg.norm(out[(k + 1) % 4] - out[k])) for k in range(4)]
-    size = ((side[0] + side[2]) / 2, (side[1] + side[3]) / 2)
+    side = _side_lengths(out)
+    size = (float(side[0] + side[2]) / 2, float(side[1] + side[3]) / 2)
     what = ", ".join(f"side {b.side} by {-b.inner_px:.2f} px" for b in bands)
     if expected_size_px is not None and _size_misfit(size, expected_size_px) > size_tolerance:
         return _not_ok(det, f"a side lies between two steps (a hard shadow's band?); "

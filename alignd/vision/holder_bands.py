@@ -244,7 +244,6 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
                    else 0.0 for k in range(4)])  # where the profile is half-way
     P1 = np.column_stack([lo, np.zeros(4), np.full(4, 0.7), c0, d0])
     P1, cost1, _ = _fit(P1, x, m, cnt, foot, 1)
-    f1, _ = _model(P1, x, foot, 1)
     # one step fits a side between two steps worse than the others: only sides whose
     # misfit (per pixel, over the step squared) is _WORSE times the best side's are
     # fitted with two (a band all round is left alone anyway; that fit costs 2-3 ms a
@@ -278,8 +277,9 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
                 and gain >= _MIN_GAIN
                 and outer - inner >= max(_MIN_SEP, _RESOLVED * s2)
                 and inner <= -_MIN_OFF and between
-                and _resolvable(x[k], m[k] - f1[k], cnt[k], inner, outer, foot[k],
-                                float(c0[k]))):
+                and _resolvable(x[k], m[k] - _model(P1[k:k + 1], x[k:k + 1],
+                                                    foot[k:k + 1], 1)[0][0],
+                                cnt[k], inner, outer, foot[k], float(c0[k]))):
             continue
         # inner's standard error: the normal matrix scaled by the pixels' scatter about
         # the fit (within the bins and the bins' about the model)
