@@ -74,3 +74,19 @@ def test_a_pole_beside_a_sample_of_its_level_running_off_the_frame_is_ambiguous(
     img, _pole_x, _near = _view((200.0, 40.0, 40.0), 40.0, 15.0, 1000.0)
     with pytest.raises(VisionError, match=r"ambiguous.*pole_roi_px"):
         measure_tilt(img)
+
+
+def test_a_full_height_sample_narrower_than_the_pole_is_ambiguous() -> None:
+    """Two full-height bars on the background with no edge between them, the sample's (25
+    px) narrower than the pole's (40 px): the narrower was taken for the pole and the tilt's
+    sign flipped (+0.30 deg against -0.30). Either could be the pole: refused, naming the
+    regions. A sample more than twice the pole's width is taken for the sample (the
+    corpus' are 3-5 times), and one wider than the frame's tenth is no candidate."""
+    img, _pole_x, _near = _view((200.0, 40.0, 70.0), 40.0, 240.0, 25.0)
+    with pytest.raises(VisionError, match=r"ambiguous.*pole_roi_px"):
+        measure_tilt(img)
+    for sample_px in (90.0, 150.0):
+        img, pole_x, _near = _view((200.0, 40.0, 70.0), 40.0, 240.0, sample_px)
+        m = measure_tilt(img)
+        assert np.mean([e.x_mid_px for e in m.pole_edges]) == pytest.approx(pole_x, abs=1.0)
+        assert m.tilt_deg == pytest.approx(-0.3, abs=0.005)

@@ -120,7 +120,8 @@ def _gauss_newton(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray
                   spread: Spread, iterations: int = 12
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Variable projection (Kaufman's Jacobian) for (a, b, s); returns p, residuals (N, W),
-    the per-row coefficients (N, 4) and J^T J."""
+    the per-row coefficients (N, 4) and J^T J. Raises _OffTheWindows when the line leaves
+    a row's window."""
     JtJ = np.eye(3)
     r = np.zeros_like(P)
     c = np.zeros((P.shape[0], 4))
@@ -133,6 +134,8 @@ def _gauss_newton(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray
         step = np.linalg.solve(JtJ + 1e-12 * np.eye(3), J.T @ r.ravel())
         p = p + step
         p[2] = float(np.clip(p[2], 0.2, 5.0))
+        if not np.all(np.abs(p[0] + p[1] * yc - cols.mean(axis=1)) <= cols.shape[1] / 2):
+            raise _OffTheWindows  # (NaN fails the test too)
         if abs(step[0]) < 1e-5 and abs(step[1]) < 1e-8 and abs(step[2]) < 1e-4:
             break
     return p, r, c, JtJ
@@ -156,8 +159,25 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
 
     The standard error treats each band of 8 image rows as one unit (a cluster-robust
     sandwich): JPEG/MJPEG codes 8 x 8 blocks, so the rows of a block share their coding
-    error and are not independent samples of the edge.
+    error and are not independent samples of the edge. None, too, when the fit runs out of
+    its windows (a profile that is no step there: a shiny pole's highlight beside its
+    edge drove the line thousands of pixels off, until the per-row solve was singular).
     """
+    try:
+        return _fit_vertical_edge(gray, a0, b0, y_mid, rows, half_width, blur0, x_limits,
+                                  min_rows, spread, clip_levels)
+    except _OffTheWindows:
+        return None
+
+
+class _OffTheWindows(Exception):
+    """The edge fit left its windows: there is no step there to fit."""
+
+
+def _fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
+                       rows: np.ndarray, half_width: int, blur0: float,
+                       x_limits: tuple[int, int] | None, min_rows: int, spread: Spread,
+                       clip_levels: tuple[float, float] | None) -> ProfileFit | None:
     h, w = gray.shape
     lo, hi = x_limits if x_limits is not None else (0, w)
     rows = np.asarray(rows, int)

@@ -45,8 +45,8 @@ __all__ = ["SIGN_CONVENTION", "SideEdge", "SideMeasurement", "TiltAverage", "bas
            "find_vertical_edges", "measure_tilt", "measure_tilt_frames"]
 
 
-# levels within this share of a pair's smaller contrast count as one (the background's
-# on both sides of a pole, or inside a gap: see _background_gaps)
+# levels within this share of a pair's smaller step count as one (the background's on both
+# sides of a pole, or inside a gap: see _pole_runs)
 _BACKGROUND_LEVEL = 0.3
 
 
@@ -281,62 +281,119 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
                    band_angle_deg=fit.band_angle_deg, rms_dn=fit.rms_dn)
 
 
-def _pole_pair(edges: list[SideEdge], max_width_px: float,
-               background: bool = False) -> list[SideEdge]:
-    """The rod: the narrowest pair of x-adjacent edges of opposite polarity. With
-    ``background`` (the automatic mode), not a pair that bounds the background (see
-    :func:`_background_gaps`), and VisionError where two such pairs share an edge."""
+def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
+    """The rod in its region: the narrowest pair of x-adjacent edges of opposite polarity."""
     srt = sorted(edges, key=lambda e: e.x_mid_px)
-    gaps = _background_gaps(srt) if background else set()
     bars = {k: b.x_mid_px - a.x_mid_px for k, (a, b) in enumerate(itertools.pairwise(srt))
             if a.contrast * b.contrast < 0 and b.x_mid_px - a.x_mid_px <= max_width_px
-            and abs(a.angle_deg - b.angle_deg) < 0.5 and k not in gaps}
+            and abs(a.angle_deg - b.angle_deg) < 0.5}
     if not bars:
         return []
     k = min(bars, key=lambda j: bars[j])
-    if background and (k - 1 in bars or k + 1 in bars):
-        # two bars side by side, both on one level's background as far as the levels tell
-        # (a pole beside a sample of its own level that runs off the frame): either could
-        # be the pole, and the other the gap between it and what lies beyond
-        j = k - 1 if k - 1 in bars else k + 1
-        raise VisionError(
-            f"side image: the reference pole is ambiguous: bars side by side at x "
-            f"{srt[min(j, k)].x_mid_px:.0f}-{srt[min(j, k) + 1].x_mid_px:.0f} and "
-            f"{srt[max(j, k)].x_mid_px:.0f}-{srt[max(j, k) + 1].x_mid_px:.0f} px, either "
-            "could be the pole and the other the gap beside it; set side_camera.pole_roi_px "
-            "and sample_roi_px")
     return [srt[k], srt[k + 1]]
 
 
-def _background_gaps(edges: list[SideEdge]) -> set[int]:
-    """Which x-adjacent pairs of ``edges`` (sorted by x; pair k: edges k and k + 1) cannot
-    be the pole: the gap between the pole and a full-height sample is a bar too, and
-    where it was the narrower it was taken for the pole (a tilt from the pole's and the
-    sample's facing edges). The levels between the edges follow from their contrasts. A
-    pole stands on the background, which lies on both its sides at one level: a pair whose
-    outer neighbours' levels differ is not the pole; and where the image's two outer
-    levels agree (the background at both ends), neither is a pair whose inside is at that
-    level (the gap between a pole and a sample of one level)."""
-    if len(edges) < 2:
-        return set()
-    c = np.array([e.contrast for e in edges])
-    level = np.concatenate([[0.0], np.cumsum(c)])  # level[k]: left of edge k (k = n: right)
-    ends_agree = abs(level[-1]) <= _BACKGROUND_LEVEL * float(np.median(np.abs(c)))
-    out = set()
-    for k in range(len(edges) - 1):
-        tol = _BACKGROUND_LEVEL * min(abs(c[k]), abs(c[k + 1]))
-        if abs(level[k] - level[k + 2]) > tol or (ends_agree and abs(level[k + 1]) <= tol):
-            out.add(k)
+# a second full-height bar beside the narrowest, with no edge between them, must be this many
+# times wider for the narrowest to be taken for the pole
+_CLEARLY_WIDER = 2.0
+# the levels beside an edge are read this far from it (px), and short of halfway to the next
+_LEVEL_NEAR, _LEVEL_FAR = 3, 12
+
+
+def _side_levels(gray: np.ndarray, edges: list[SideEdge]) -> np.ndarray:
+    """The image's level just left and just right of each edge (sorted by x), (n, 2): the
+    median over the edge's rows of the pixels _LEVEL_NEAR to _LEVEL_FAR px beside it, short
+    of halfway to the next edge. Read from the image, not only summed from the edges' steps:
+    a pole lit from one side (a cylinder) steps 50 DN more at one edge than at the other,
+    so the sum did not return to the background beyond it."""
+    h, w = gray.shape
+    xs = [e.x_mid_px for e in edges]
+    out = np.empty((len(edges), 2))
+    for k, e in enumerate(edges):
+        ys = np.arange(max(e.rows[0], 0), min(e.rows[1], h - 1) + 1, 2)
+        x = e.line.minor_at(ys.astype(float))
+        for side, sgn in enumerate((-1, 1)):
+            nxt = xs[k + sgn] if 0 <= k + sgn < len(xs) else math.inf * sgn
+            room = abs(nxt - e.x_mid_px) / 2
+            d = np.arange(min(_LEVEL_NEAR, max(room - 1, 1)), min(_LEVEL_FAR, max(room, 2)))
+            cols = np.clip(np.rint(x[:, None] + sgn * d[None, :]), 0, w - 1).astype(int)
+            out[k, side] = float(np.median(gray[ys[:, None], cols]))
     return out
 
 
-def _auto_pole(edges: list[SideEdge], h: int, min_fraction: float,
+def _pole_runs(gray: np.ndarray, edges: list[SideEdge], max_width_px: float
+               ) -> list[SideEdge]:
+    """The rod unaided, among full-height edges: edges i and j of opposite polarity at most
+    ``max_width_px`` apart with one level on both their outer sides (a pole stands on the
+    background), and any edges between them its surface (a highlight along a shiny rod,
+    the shading of a rod lit from one side). Not a pole: edges whose inside comes back to
+    their outer level (two things, or the gap between them), or, where the image's two outer
+    levels agree (the background at both ends), to that level (the gap between a pole and a
+    sample of one level: a bar too, and where it was the narrower it was taken for the
+    pole). A bar inside another is the rod's surface. Of what remains, the narrowest; a
+    VisionError where another shares an edge with it, or lies beside it with no edge between
+    them and is not _CLEARLY_WIDER (either could be the pole: a full-height sample narrower
+    than the pole was taken for it, and the tilt's sign flipped)."""
+    srt = sorted(edges, key=lambda e: e.x_mid_px)
+    if len(srt) < 2:
+        return []
+    # each level two ways: read beside the edges (a shaded pole's steps do not sum to zero)
+    # and, across a pair of edges, summed from their steps (a shadow's edge near the pole
+    # makes the levels read beside it differ; the steps are local; but a highlight's edges
+    # step less than its plateau, so not summed across a run). Region k: left of edge k
+    lv = _side_levels(gray, srt)
+    step = np.abs(lv[:, 1] - lv[:, 0])
+    c = np.array([e.contrast for e in srt])
+    summed = np.concatenate([[0.0], np.cumsum(c)])
+    x = np.array([e.x_mid_px for e in srt])
+    ends_agree = bool(abs(lv[0, 0] - lv[-1, 1]) <= _BACKGROUND_LEVEL * np.median(step)
+                      or abs(summed[-1]) <= _BACKGROUND_LEVEL * np.median(np.abs(c)))
+    runs = []
+    for i, j in itertools.combinations(range(len(srt)), 2):
+        if (c[i] * c[j] >= 0 or x[j] - x[i] > max_width_px
+                or abs(srt[i].angle_deg - srt[j].angle_deg) >= 0.5):
+            continue
+        tol = _BACKGROUND_LEVEL * min(step[i], step[j])
+        tol_c = _BACKGROUND_LEVEL * min(abs(c[i]), abs(c[j]))
+        pair = j == i + 1
+        if not (abs(lv[i, 0] - lv[j, 1]) <= tol
+                or (pair and abs(summed[i] - summed[j + 1]) <= tol_c)):
+            continue  # not one level on both its sides
+        inside = np.concatenate([lv[i:j, 1], lv[i + 1:j + 1, 0]])
+        at = np.concatenate([x[i:j], x[i + 1:j + 1]])
+        if np.any(np.abs(inside - (lv[i, 0] + lv[j, 1]) / 2) <= tol):
+            continue  # back at its outer level inside
+        # the background under a linear gradient, from the image's two ends
+        bg = np.interp(at, [x[0], x[-1]], [lv[0, 0], lv[-1, 1]])
+        if ends_agree and (np.any(np.abs(inside - bg) <= tol)
+                           or (pair and abs(summed[j]) <= tol_c)):
+            continue  # the background inside: a gap
+        runs.append((i, j))
+    runs = [r for r in runs if not any(o != r and o[0] <= r[0] and r[1] <= o[1] for o in runs)]
+    if not runs:
+        return []
+    width = {r: x[r[1]] - x[r[0]] for r in runs}
+    best = min(runs, key=width.__getitem__)
+    for r in runs:  # beside it: sharing an edge, or with none between them and not clearly
+        # wider (the corpus' samples are 3-5 times its poles' width)
+        shared = r[0] == best[1] or best[0] == r[1]
+        next_to = r[0] - best[1] == 1 or best[0] - r[1] == 1
+        if shared or (next_to and width[r] < _CLEARLY_WIDER * width[best]):
+            lo, hi = sorted((best, r))
+            raise VisionError(
+                f"side image: the reference pole is ambiguous: bars at x {x[lo[0]]:.0f}-"
+                f"{x[lo[1]]:.0f} and {x[hi[0]]:.0f}-{x[hi[1]]:.0f} px with no edge between "
+                "them, either could be the pole and the other the sample or the gap beside "
+                "it; set side_camera.pole_roi_px and sample_roi_px")
+    return [srt[best[0]], srt[best[1]]]
+
+
+def _auto_pole(gray: np.ndarray, edges: list[SideEdge], h: int, min_fraction: float,
                max_width_px: float) -> list[SideEdge]:
     """The pole unaided: a narrow bar whose edges run through the whole height; failing
     that, 90 % of it (uneven light, ends)."""
     for frac in (min_fraction, 0.9):
-        pole = _pole_pair([e for e in edges if _spans(e, h, frac)], max_width_px,
-                          background=True)
+        pole = _pole_runs(gray, [e for e in edges if _spans(e, h, frac)], max_width_px)
         if pole:
             return pole
     return []
@@ -373,16 +430,18 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
     With regions of interest (``pole_roi_px``, ``sample_roi_px``: x0, y0, x1, y1 in px,
     from the config's ``side_camera`` keys) each target is measured inside its own region:
     the pole as its pair of opposite edges (or its one edge), the sample as its longest
-    edge there. Without them (automatic mode) the pole is the narrowest bar (two
-    x-adjacent edges of opposite polarity, at most ``max_pole_width_px`` apart, default a
-    tenth of the width) whose edges both run through the image height (or, failing that, 90 %
-    of it: uneven light may hide their ends), and the
-    sample edge is the edge nearest the pole among the long ones (at least 80 % of the
-    longest other edge); its parallel opposite face is averaged in when it covers the same
-    rows. ``pole_x_px`` / ``sample_x_px`` (approximate x) pick among the edges instead.
-    Raises VisionError when either target is missing or ambiguous.
+    edge there. Without them (automatic mode) the pole is the narrowest bar on the
+    background (two edges of opposite polarity, at most ``max_pole_width_px`` apart, default
+    a tenth of the width, any edges between them its surface: :func:`_pole_runs`) whose
+    edges both run through the image height (or, failing that, 90 % of it: uneven light may
+    hide their ends), and the sample edge is the edge outside it nearest the pole among the
+    long ones (at least 80 % of the longest other edge); its parallel opposite face is
+    averaged in when it covers the same rows. ``pole_x_px`` / ``sample_x_px`` (approximate
+    x) pick among the edges instead. Raises VisionError when either target is missing or
+    ambiguous.
     """
-    h, w = np.asarray(image).shape[:2]
+    gray = as_gray(image, "side image")
+    h, w = gray.shape
     mode = "roi" if pole_roi_px is not None or sample_roi_px is not None else "auto"
     if pole_roi_px is not None:
         width = float(pole_roi_px[2] - pole_roi_px[0])
@@ -407,14 +466,14 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
             pool = sorted(edges, key=lambda e: abs(e.x_mid_px - pole_x_px))[:2]
             pool = [e for e in pool if abs(e.x_mid_px - pole_x_px) < 60]
         else:
-            pole = _auto_pole(edges, h, pole_min_fraction, max_pole_width_px or 0.1 * w)
+            pole = _auto_pole(gray, edges, h, pole_min_fraction, max_pole_width_px or 0.1 * w)
             if not pole:
                 # a faint, defocused or shaded pole edge may not reach the coarse search's
                 # threshold: look again with a lower one
                 faint_searched = True
                 edges = _merge(edges, find_vertical_edges(image, min_contrast=min_contrast,
                                                           canny=FAINT_CANNY))
-                pole = _auto_pole(edges, h, pole_min_fraction,
+                pole = _auto_pole(gray, edges, h, pole_min_fraction,
                                   max_pole_width_px or 0.1 * w)
         if pole_x_px is not None:
             pole = _pole_pair(pool, max_pole_width_px or 0.1 * w)
@@ -447,7 +506,6 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
                                                       canny=FAINT_CANNY))
             main, rest = _auto_sample(edges, pole, h, sample_x_px, max_edge_rms_px)
     sample = _partner(main, rest)
-    gray = as_gray(image, "side image")
     others = [*edges, *pole, *sample]
     joint = _one_spread(gray, pole, sample, others, pole_roi_px, sample_roi_px)
     if joint is not None:
@@ -463,10 +521,11 @@ def _auto_sample(edges: list[SideEdge], pole: list[SideEdge], h: int,
                  sample_x_px: float | None, max_edge_rms_px: float
                  ) -> tuple[SideEdge, list[SideEdge]]:
     """The sample edge without a region: among the long straight edges besides the pole
-    (at least 80 % of the longest), the one nearest ``sample_x_px`` or else the pole; and
-    the edges its opposite face is looked for among."""
-    rest = [e for e in edges if all(e is not p and abs(e.x_mid_px - p.x_mid_px) > 3
-                                    for p in pole)]
+    and outside it (at least 80 % of the longest), the one nearest ``sample_x_px`` or else
+    the pole; and the edges its opposite face is looked for among."""
+    lo = min(p.x_mid_px for p in pole) - 3
+    hi = max(p.x_mid_px for p in pole) + 3
+    rest = [e for e in edges if not lo <= e.x_mid_px <= hi]  # nor the pole's surface
     if sample_x_px is not None:
         rest = [e for e in rest if abs(e.x_mid_px - sample_x_px) < 150]
     # a straight edge fits to hundredths of a pixel; a fit through the sample's edge

@@ -1,0 +1,72 @@
+"""The side camera's pole as a real rod shows it: lit from one side (a cylinder's shading, a
+step 50 DN larger at one edge than at the other) and shiny (a highlight along it, a bright
+stripe with edges of its own). Before: the automatic mode took the stripe, or the gap
+beside the pole, for the pole, or the pole's own far edge for the sample's (tilts of
+-0.0005 to +0.10 deg against -0.30), or found no pole; with regions, a fit across the
+highlight ran off its windows and raised numpy's LinAlgError."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from alignd.vision.side import measure_tilt
+
+_W, _H, _SS = 1280, 720, 8  # the frame; sub-columns a pixel is drawn from
+_POLE_W, _GAP, _SAMPLE_W = 40.0, 120.0, 300.0
+
+
+def _view(levels: tuple[float, float, float], highlight: float, at: float, shade: float,
+          pole_right: bool) -> tuple[np.ndarray, float, float]:
+    """Background, pole and sample levels. A vertical pole whose level across it (s from -1
+    to 1) is pole + shade s + a highlight of ``highlight`` DN centred at s = ``at``; the gap;
+    a sample leaning 0.3 deg (its top toward -x); mirrored with ``pole_right``. Drawn on 8
+    sub-columns a pixel, blur 0.8 px, noise 1 DN. The frame, the pole's x and the sample's
+    near edge's x (middle row)."""
+    bg, pole, sample = levels
+    px = 800.0 if pole_right else 400.0
+    sx = px - _GAP - _SAMPLE_W if pole_right else px + _POLE_W + _GAP
+    xs = (np.arange(_W * _SS) + 0.5) / _SS
+    img = np.full((_H, _W * _SS), bg, np.float32)
+    s = (xs - px) / _POLE_W * 2.0 - 1.0
+    on = np.abs(s) <= 1.0
+    img[:, on] = (pole + shade * s + highlight * np.exp(-(((s - at) / 0.08) ** 2)))[on]
+    left = sx + (np.arange(_H)[:, None] + 0.5 - _H / 2) * math.tan(math.radians(0.3))
+    img[(xs[None, :] >= left) & (xs[None, :] < left + _SAMPLE_W)] = sample
+    img = cv2.GaussianBlur(img.reshape(_H, _W, _SS).mean(axis=2), (0, 0), 0.8)
+    img += np.random.default_rng(1).normal(0.0, 1.0, img.shape).astype(np.float32)
+    near = sx + _SAMPLE_W if pole_right else sx
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), px + _POLE_W / 2, near
+
+
+@pytest.mark.parametrize(("levels", "highlight", "at", "shade"), [
+    ((120.0, 30.0, 230.0), 150.0, -0.5, 0.0),  # the stripe was the pole: -0.22 / -0.0005
+    ((60.0, 200.0, 180.0), 150.0, 0.4, 0.0),  # the gap was the pole, the stripe the sample
+    ((60.0, 200.0, 180.0), 0.0, 0.0, 25.0),  # shaded: the gap was the pole (+0.03)
+    ((200.0, 40.0, 70.0), 0.0, 0.0, 25.0),  # shaded: no pole found
+    ((220.0, 60.0, 30.0), 150.0, 0.4, 25.0),  # both: no pole found
+])
+@pytest.mark.parametrize("pole_right", [False, True])
+def test_a_shaded_shiny_pole_is_found_whole_in_the_automatic_mode(
+        levels: tuple[float, float, float], highlight: float, at: float, shade: float,
+        pole_right: bool) -> None:
+    img, pole_x, near_x = _view(levels, highlight, at, shade, pole_right)
+    m = measure_tilt(img)
+    xs = sorted(e.x_mid_px for e in m.pole_edges)
+    assert xs == pytest.approx([pole_x - _POLE_W / 2, pole_x + _POLE_W / 2], abs=1.0)
+    assert m.sample_edges[0].x_mid_px == pytest.approx(near_x, abs=1.0)
+    assert m.tilt_deg == pytest.approx(-0.3, abs=0.005)
+
+
+def test_a_highlight_beside_the_pole_edge_in_its_region_is_measured_not_a_numpy_error() -> None:
+    """With regions, the profile fit of an edge with a highlight a few px inside it ran
+    thousands of px off until its per-row solve was singular; such a fit now fails alone
+    and the edge keeps its first measurement."""
+    img, pole_x, near_x = _view((200.0, 40.0, 70.0), 60.0, 0.0, 25.0, False)
+    x0 = int(pole_x - _POLE_W / 2)
+    m = measure_tilt(img, pole_roi_px=(x0 - 20, 0, x0 + int(_POLE_W) + 20, _H),
+                     sample_roi_px=(int(near_x) - 20, 0, int(near_x) + 20, _H))
+    assert m.tilt_deg == pytest.approx(-0.3, abs=0.005)
