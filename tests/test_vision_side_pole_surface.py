@@ -1,9 +1,10 @@
 """The side camera's pole as a real rod shows it: lit from one side (a cylinder's shading, a
-step 50 DN larger at one edge than at the other) and shiny (a highlight along it, a bright
-stripe with edges of its own). Before: the automatic mode took the stripe, or the gap
-beside the pole, for the pole, or the pole's own far edge for the sample's (tilts of
--0.0005 to +0.10 deg against -0.30), or found no pole; with regions, a fit across the
-highlight ran off its windows and raised numpy's LinAlgError."""
+step 50 DN larger at one edge than at the other), shiny (a highlight along it, a bright
+stripe with edges of its own), and casting its shadow on the wall behind. Before: the
+automatic mode took the stripe, or the gap beside the pole, for the pole, or the pole's own
+far edge for the sample's (tilts of -0.22 to +0.10 deg against -0.30), or found no pole;
+with regions, a fit across the highlight ran off its windows and raised numpy's
+LinAlgError; the shadow was taken for the pole or the sample (0.6 deg off)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ import cv2
 import numpy as np
 import pytest
 
+from alignd.errors import VisionError
 from alignd.vision.side import measure_tilt
+from drivers.sim.render import Polygon, Raster, coverage
 
 _W, _H, _SS = 1280, 720, 8  # the frame; sub-columns a pixel is drawn from
 _POLE_W, _GAP, _SAMPLE_W = 40.0, 120.0, 300.0
@@ -70,3 +73,41 @@ def test_a_highlight_beside_the_pole_edge_in_its_region_is_measured_not_a_numpy_
     m = measure_tilt(img, pole_roi_px=(x0 - 20, 0, x0 + int(_POLE_W) + 20, _H),
                      sample_roi_px=(int(near_x) - 20, 0, int(near_x) + 20, _H))
     assert m.tilt_deg == pytest.approx(-0.3, abs=0.005)
+
+
+def _with_shadow(width_px: float, offset_px: float, penumbra_px: float) -> np.ndarray:
+    """A 30 px pole at x 600 (background 200, pole 40 DN), a sample (70 DN, 300 px) 120 px to
+    its left leaning 0.3 deg, and the pole's shadow on the wall behind, ``offset_px`` to its
+    right: ``width_px`` wide, leaning 0.6 deg, 60 % deep, its edges blurred by
+    ``penumbra_px``; blur 0.8 px, noise 1 DN."""
+    ras = Raster((_W, _H), 1000.0, (_W / 2, _H / 2), 0.0)
+    box = (0, 0, _W, _H)
+
+    def bar(left: float, width: float, angle_deg: float) -> Polygon:
+        t = math.tan(math.radians(angle_deg))
+        y0, y1, yc = -50.0, _H + 50.0, _H / 2
+        return Polygon(np.array([[left + (y0 - yc) * t, y0], [left + width + (y0 - yc) * t, y0],
+                                 [left + width + (y1 - yc) * t, y1], [left + (y1 - yc) * t, y1]]))
+
+    img = np.full((_H, _W), 200.0)
+    shade = coverage(bar(630.0 + offset_px, width_px, 0.6), ras, box).astype(np.float32)
+    img *= 1.0 - 0.6 * cv2.GaussianBlur(shade, (0, 0), penumbra_px)
+    img += (40.0 - img) * coverage(bar(600.0, 30.0, 0.0), ras, box)
+    img += (70.0 - img) * coverage(bar(180.0, 300.0, 0.3), ras, box)
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8)
+    img += np.random.default_rng(1).normal(0.0, 1.0, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize(("width_px", "offset_px", "penumbra_px"),
+                         [(20.0, 40.0, 4.0), (30.0, 100.0, 1.5), (45.0, 40.0, 1.5)])
+def test_the_poles_shadow_beside_it_is_ambiguous_not_measured(
+        width_px: float, offset_px: float, penumbra_px: float) -> None:
+    """A pole lit from the front casts its shadow on the wall behind: a second full-height
+    bar beside it, leaning as the light and the wall make it. Before: taken for the pole
+    (the narrower) or for the sample's edge (the nearer), a tilt 0.6 deg off. Nothing tells
+    the two bars apart in one frame: refused, naming the regions. (The first: a line fitted
+    through pieces of the shadow's penumbra stood between the bars until only straight
+    edges counted.)"""
+    with pytest.raises(VisionError, match=r"ambiguous.*pole_roi_px"):
+        measure_tilt(_with_shadow(width_px, offset_px, penumbra_px))
