@@ -11,22 +11,23 @@ the band's outer edge).
 
 Here the pixels within 8 px of each side's middle 70 % are binned by their exact distance
 to it (0.2 px bins: the edge spread function, super-resolved by the side's slant) and
-fitted by one blurred step and by two steps of one blur, each with the levels' linear
-slope and a pixel's exact response (:func:`alignd.vision.profile_fit.step_response`; an
-erf instead read a sharp edge's pixel squares as two steps 1 px apart). A side whose
-profile two steps of the same sign fit far better, resolved, the smaller a fair share of
-both, lies beside a band when the found side is 0.3 px or more outside the inner step:
-between the two, or on the outer one (a band nearly as dark as the holder merges with
-it) with the inner one at most 4.5 px in. The holder's own edge is the inner step: a
-shadow, a strip or a wall lies outside the top face. (A band inside the face along one
-side reads the same way, and is cut off: a chamfer lit apart, a label flush with the
-edge. Its inner edge is then a rigid edge of the holder all the same, while a shadow's
+fitted by one blurred step and by two steps of one blur, each with the levels' linear slope
+and a pixel's exact response (:func:`alignd.vision.profile_fit.step_response`; an erf
+instead read a sharp edge's pixel squares as two steps 1 px apart). A side whose profile
+two steps of the same sign fit far better, resolved, the smaller a fair share of both, lies
+beside a band when the found side is 0.3 px or more outside the inner step: between the
+two, or on the outer one (a band nearly as dark as the holder merges with it) with the
+inner one at most 4.5 px in, and the face beyond the inner step is flat (a brushed face's
+lines along a side make such steps too, one after another). The holder's own edge is the
+inner step: a shadow, a strip or a wall lies outside the top face. (A band inside the face
+along one side reads the same way, and is cut off: a chamfer lit apart, a label flush with
+the edge. Its inner edge is then a rigid edge of the holder all the same, while a shadow's
 outer edge moves with the light. A band along opposite sides is taken for such and left
 alone, see :func:`side_bands`.) A side along the pixel rows samples its profile once a
-pixel, and there a blur not quite Gaussian fits two steps about 1 px apart far better
-than one: such a side must also misfit one step by more than a blur's shape can. A band
-narrower than about 1 px is not resolved from the edge's own blur and still moves the
-side by up to half a pixel.
+pixel, and there a blur not quite Gaussian fits two steps about 1 px apart far better than
+one: such a side must also misfit one step by more than a blur's shape can. A band narrower
+than about 1 px is not resolved from the edge's own blur and still moves the side by up to
+half a pixel.
 """
 
 from __future__ import annotations
@@ -87,17 +88,18 @@ class Band:
     sigma_px: float  # standard error of inner_px (from the fit's residuals)
 
 
-def _profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None
-              ) -> tuple[np.ndarray, ...]:
+def _profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None,
+              bins: np.ndarray = _EDGES) -> tuple[np.ndarray, ...]:
     """Each side's pixels within ``_REACH`` of it along its middle (``_ALONG``), binned
     by their distance to it in the ideal image (``ci``: the corners there; + outward,
-    ``_BIN`` px bins): the bins' mean distances, mean levels and pixel counts, each
-    (4, bins), the pixels' spread within the bins (4,) and the sides' footprint widths
-    (4, 2) (a pixel's square seen across the side: :func:`step_response`)."""
+    ``_BIN`` px bins; or ``bins``, their edges): the bins' mean distances, mean levels and
+    pixel counts, each (4, bins), the pixels' spread within the bins (4,) and the sides'
+    footprint widths (4, 2) (a pixel's square seen across the side: :func:`step_response`)."""
     h, w = gray.shape
     edge, length, n = side_frame(ci)
     u = edge / np.maximum(length, 1e-9)[:, None]
-    nb = _EDGES.size - 1
+    nb = bins.size - 1
+    far = float(np.max(np.abs(bins)))
     xs, ms, cnt = np.zeros((4, nb)), np.zeros((4, nb)), np.zeros((4, nb))
     within = np.zeros(4)
     for k in range(4):
@@ -112,7 +114,7 @@ def _profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None
             continue
         major = np.arange(lo, hi + 1, dtype=float)
         minor = np.interp(major, q[order, across], q[order, 1 - across])
-        reach = math.ceil(_REACH / max(abs(u[k, across]), 0.5)) + 2
+        reach = math.ceil(far / max(abs(u[k, across]), 0.5)) + 2
         off = np.arange(-reach, reach + 1, dtype=float)
         mi = np.rint(minor)[:, None] + off[None, :]
         ma = np.broadcast_to(major[:, None], mi.shape)
@@ -122,16 +124,16 @@ def _profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None
         pi = px if lens is None else lens.undistort(px)
         d = (pi - ci[k]) @ n[k]
         along = (pi - ci[k]) @ u[k]
-        keep = (np.abs(d) < _REACH) & (along >= _ALONG[0] * length[k]) & (
+        keep = (d >= bins[0]) & (d < bins[-1]) & (along >= _ALONG[0] * length[k]) & (
             along <= _ALONG[1] * length[k])
         d = d[keep]
         v = gray[px[keep, 1].astype(np.intp), px[keep, 0].astype(np.intp)].astype(float)
-        idx = np.clip(np.searchsorted(_EDGES, d) - 1, 0, nb - 1)
+        idx = np.clip(np.searchsorted(bins, d) - 1, 0, nb - 1)
         c = np.bincount(idx, minlength=nb).astype(float)
         sv = np.bincount(idx, v, nb)
         sd = np.bincount(idx, d, nb)
         m = sv / np.maximum(c, 1)
-        xs[k] = np.where(c > 0, sd / np.maximum(c, 1), 0.5 * (_EDGES[:-1] + _EDGES[1:]))
+        xs[k] = np.where(c > 0, sd / np.maximum(c, 1), 0.5 * (bins[:-1] + bins[1:]))
         ms[k], cnt[k] = m, c
         within[k] = float(np.sum(v * v) - np.sum(c * m * m))
     foot = np.sort(np.abs(n), axis=1)[:, ::-1]
@@ -217,6 +219,29 @@ def _resolvable(x: np.ndarray, r: np.ndarray, cnt: np.ndarray, inner: float, out
     return miss >= _MIN_MISS * abs(step)
 
 
+# the face beyond a band's inner step, read _DEEP px deep from _DEEP_FROM px inside it, must
+# vary (rms about a line) by less than _FLAT of the band's smaller step: a brushed face's
+# lines parallel to a side (15 DN rms, 4 px apart) made a second step 4 px inside a dark
+# holder's side, and the side was moved onto it (3.7-3.9 px); such a face varies by 0.29
+# of that step, the face behind the synthetic hard shadows by 0.001-0.003
+_DEEP, _DEEP_FROM, _FLAT = 12.0, 1.5, 0.05
+_DEEP_BINS = np.arange(-_REACH - _DEEP - _DEEP_FROM, 0.0, 0.5)
+
+
+def _rough_face(gray: np.ndarray, ci: np.ndarray, lens: Lens | None, k: int, inner: float,
+                step: float) -> bool:
+    """Whether the face inside side ``k``'s inner step varies as much as a band: texture
+    (:data:`_DEEP`, :data:`_FLAT`), whose inner step is one more of its lines."""
+    x, m, cnt, _within, _foot = _profiles(gray, ci, lens, _DEEP_BINS)
+    use = (cnt[k] > 0) & (x[k] >= inner - _DEEP_FROM - _DEEP) & (x[k] <= inner - _DEEP_FROM)
+    if use.sum() < 8:
+        return False
+    wts = cnt[k, use]
+    fit = np.polyval(np.polyfit(x[k, use], m[k, use], 1, w=np.sqrt(wts)), x[k, use])
+    rms = math.sqrt(float(np.sum(wts * (m[k, use] - fit) ** 2) / np.sum(wts)))
+    return rms > _FLAT * step
+
+
 _SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, ...
 _SPLITS = (0.0, 0.5, 1.0)  # ... the one step's place at the inner, middle, outer one
 
@@ -280,6 +305,8 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
                 and _resolvable(x[k], m[k] - _model(P1[k:k + 1], x[k:k + 1],
                                                     foot[k:k + 1], 1)[0][0],
                                 cnt[k], inner, outer, foot[k], float(c0[k]))):
+            continue
+        if _rough_face(gray, ci, lens, int(k), inner, min(abs(c1), abs(c2))):
             continue
         # inner's standard error: the normal matrix scaled by the pixels' scatter about
         # the fit (within the bins and the bins' about the model)
