@@ -629,11 +629,12 @@ def _off_the_bands(gray: np.ndarray, det: HolderDetection, lens: Lens | None,
     size = (float(side[0] + side[2]) / 2, float(side[1] + side[3]) / 2)
     what = ", ".join(f"side {b.side} by {-b.inner_px:.2f} px" for b in bands)
     if expected_size_px is not None and _size_misfit(size, expected_size_px) > size_tolerance:
-        return _not_ok(det, f"a side lies between two steps (a hard shadow's band?); "
-                            f"moved in to the inner one ({what}), the holder is "
+        return _not_ok(det, f"a side steps twice, the holder's edge and a band beside it "
+                            f"(a hard shadow?); moved in to the inner step ({what}), the "
+                            f"holder is "
                             f"{max(size):.1f} x {min(size):.1f} px, expected "
                             f"{max(expected_size_px):.1f} x {min(expected_size_px):.1f}")
-    log.debug("top image: sides between two steps moved in to the inner one: %s", what)
+    log.debug("top image: sides beside a band moved in to its inner step: %s", what)
     center, angle = _quad_center(out), _quad_angle(out)
     frame = out if lens is None or lens.k1 == 0.0 else lens.distort(out)
     if lens is not None and lens.k1 != 0.0:
