@@ -296,7 +296,7 @@ def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
 # a second full-height bar beside the narrowest, with no edge between them, must be this many
 # times wider for the narrowest to be taken for the pole
 _CLEARLY_WIDER = 2.0
-# the share of the image's rows a pole edge must be measured in (automatic mode)
+# the share of the image's (region's) rows a pole edge must be measured in
 _MIN_ROWS_SHARE = 0.5
 # the levels beside an edge are read this far from it (px), and short of halfway to the next
 _LEVEL_NEAR, _LEVEL_FAR = 3, 12
@@ -323,7 +323,8 @@ def _side_levels(gray: np.ndarray, edges: list[SideEdge]) -> np.ndarray:
     return out
 
 
-def _pole_runs(gray: np.ndarray, edges: list[SideEdge], max_width_px: float
+def _pole_runs(gray: np.ndarray, edges: list[SideEdge], max_width_px: float, rows: int,
+               advice: str = "set side_camera.pole_roi_px and sample_roi_px"
                ) -> list[SideEdge]:
     """The rod unaided, among full-height edges: edges i and j of opposite polarity at most
     ``max_width_px`` apart with one level on both their outer sides (a pole stands on the
@@ -335,8 +336,13 @@ def _pole_runs(gray: np.ndarray, edges: list[SideEdge], max_width_px: float
     pole). A bar inside another is the rod's surface. Of what remains, the narrowest; a
     VisionError where another shares an edge with it, or lies beside it with no edge between
     them and is not _CLEARLY_WIDER (either could be the pole: a full-height sample narrower
-    than the pole was taken for it, and the tilt's sign flipped)."""
-    srt = sorted(edges, key=lambda e: e.x_mid_px)
+    than the pole was taken for it, and the tilt's sign flipped). Only edges measured in
+    at least _MIN_ROWS_SHARE of ``rows`` count: a line fitted through pieces of a penumbra
+    (in 20 % of the rows, 1.2 px rms, 5 deg off) between a pole and its shadow on the wall
+    behind stood between them, so they did not count as side by side and the shadow, the
+    narrower, was taken for the pole."""
+    srt = sorted((e for e in edges if _length(e) >= _MIN_ROWS_SHARE * rows),
+                 key=lambda e: e.x_mid_px)
     if len(srt) < 2:
         return []
     # each level two ways: read beside the edges (a shaded pole's steps do not sum to zero)
@@ -385,20 +391,27 @@ def _pole_runs(gray: np.ndarray, edges: list[SideEdge], max_width_px: float
                 f"side image: the reference pole is ambiguous: bars at x {x[lo[0]]:.0f}-"
                 f"{x[lo[1]]:.0f} and {x[hi[0]]:.0f}-{x[hi[1]]:.0f} px with no edge between "
                 "them, either could be the pole and the other the sample or the gap beside "
-                "it; set side_camera.pole_roi_px and sample_roi_px")
+                f"it; {advice}")
     return [srt[best[0]], srt[best[1]]]
+
+
+def _region_pole(gray: np.ndarray, pool: list[SideEdge], width: float,
+                 roi: tuple[int, int, int, int]) -> list[SideEdge]:
+    """The rod in its region: as unaided (:func:`_pole_runs`: a highlight or shading along
+    it is its surface, and a second bar beside it makes it ambiguous: a region drawn wide
+    enough to hold the pole's shadow had the shadow, the narrower, taken for the pole),
+    else the narrowest pair of opposite edges, else []."""
+    return (_pole_runs(gray, pool, width, int(roi[3] - roi[1]),
+                       advice=f"narrow side_camera.pole_roi_px {tuple(roi)} to the pole alone")
+            or _pole_pair(pool, width))
 
 
 def _auto_pole(gray: np.ndarray, edges: list[SideEdge], h: int, min_fraction: float,
                max_width_px: float) -> list[SideEdge]:
     """The pole unaided: a narrow bar whose edges run through the whole height; failing
-    that, 90 % of it (uneven light, ends). Only edges measured in at least half the rows: a
-    line fitted through pieces of a penumbra (in 20 % of the rows, 1.2 px rms, 5 deg off)
-    between a pole and its shadow on the wall behind stood between them, so they did not
-    count as side by side and the shadow, the narrower, was taken for the pole."""
+    that, 90 % of it (uneven light, ends)."""
     for frac in (min_fraction, 0.9):
-        pole = _pole_runs(gray, [e for e in edges if _spans(e, h, frac)
-                                 and _length(e) >= _MIN_ROWS_SHARE * h], max_width_px)
+        pole = _pole_runs(gray, [e for e in edges if _spans(e, h, frac)], max_width_px, h)
         if pole:
             return pole
     return []
@@ -432,18 +445,18 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
                  ) -> SideMeasurement:
     """Sample angle, pole angle and tilt from one side-camera frame.
 
-    With regions of interest (``pole_roi_px``, ``sample_roi_px``: x0, y0, x1, y1 in px,
-    from the config's ``side_camera`` keys) each target is measured inside its own region:
-    the pole as its pair of opposite edges (or its one edge), the sample as its longest
-    edge there. Without them (automatic mode) the pole is the narrowest bar on the
-    background (two edges of opposite polarity, at most ``max_pole_width_px`` apart, default
-    a tenth of the width, any edges between them its surface: :func:`_pole_runs`) whose
-    edges both run through the image height (or, failing that, 90 % of it: uneven light may
-    hide their ends), and the sample edge is the edge outside it nearest the pole among the
-    long ones (at least 80 % of the longest other edge); its parallel opposite face is
-    averaged in when it covers the same rows. ``pole_x_px`` / ``sample_x_px`` (approximate
-    x) pick among the edges instead. Raises VisionError when either target is missing or
-    ambiguous.
+    With regions of interest (``pole_roi_px``, ``sample_roi_px``: x0, y0, x1, y1 in px, from
+    the config's ``side_camera`` keys) each target is measured inside its own region: the
+    pole as below (:func:`_region_pole`; or its narrowest pair of opposite edges, or its one
+    edge), the sample as its longest edge there. Without them (automatic mode) the pole is
+    the narrowest bar on the background (two edges of opposite polarity, at most
+    ``max_pole_width_px`` apart, default a tenth of the width, any edges between them its
+    surface: :func:`_pole_runs`) whose edges both run through the image height (or, failing
+    that, 90 % of it: uneven light may hide their ends), and the sample edge is the edge
+    outside it nearest the pole among the long ones (at least 80 % of the longest other
+    edge); its parallel opposite face is averaged in when it covers the same rows.
+    ``pole_x_px`` / ``sample_x_px`` (approximate x) pick among the edges instead. Raises
+    VisionError when either target is missing or ambiguous.
     """
     gray = as_gray(image, "side image")
     h, w = gray.shape
@@ -451,11 +464,12 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
     if pole_roi_px is not None:
         width = float(pole_roi_px[2] - pole_roi_px[0])
         pool = _roi_edges(image, pole_roi_px, "pole", min_contrast)
-        pole = _pole_pair(pool, width)
+        pole = _region_pole(gray, pool, width, pole_roi_px)
         if not pole:  # a faint pole edge: look again with lower thresholds
             pool = _merge(pool, _roi_edges(image, pole_roi_px, "pole", min_contrast,
                                            FAINT_CANNY))
-            pole = _pole_pair(pool, width) or ([max(pool, key=_length)] if pool else [])
+            pole = (_region_pole(gray, pool, width, pole_roi_px)
+                    or ([max(pool, key=_length)] if pool else []))
         if not pole:
             raise VisionError(f"side image: reference pole not found in its region "
                               f"{tuple(pole_roi_px)}")
