@@ -326,21 +326,21 @@ def _side_levels(gray: np.ndarray, edges: list[SideEdge]) -> np.ndarray:
 def _pole_runs(gray: np.ndarray, edges: list[SideEdge], max_width_px: float, rows: int,
                advice: str = "set side_camera.pole_roi_px and sample_roi_px"
                ) -> list[SideEdge]:
-    """The rod unaided, among full-height edges: edges i and j of opposite polarity at most
-    ``max_width_px`` apart with one level on both their outer sides (a pole stands on the
-    background), and any edges between them its surface (a highlight along a shiny rod,
-    the shading of a rod lit from one side). Not a pole: edges whose inside comes back to
-    their outer level (two things, or the gap between them), or, where the image's two outer
-    levels agree (the background at both ends), to that level (the gap between a pole and a
-    sample of one level: a bar too, and where it was the narrower it was taken for the
-    pole). A bar inside another is the rod's surface. Of what remains, the narrowest; a
-    VisionError where another shares an edge with it, or lies beside it with no edge between
-    them and is not _CLEARLY_WIDER (either could be the pole: a full-height sample narrower
-    than the pole was taken for it, and the tilt's sign flipped). Only edges measured in
-    at least _MIN_ROWS_SHARE of ``rows`` count: a line fitted through pieces of a penumbra
-    (in 20 % of the rows, 1.2 px rms, 5 deg off) between a pole and its shadow on the wall
-    behind stood between them, so they did not count as side by side and the shadow, the
-    narrower, was taken for the pole."""
+    """The rod among ``edges`` (the full-height ones unaided, a region's with regions):
+    edges i and j of opposite polarity at most ``max_width_px`` apart with one level on both
+    their outer sides (a pole stands on the background), and any edges between them its
+    surface (a highlight along a shiny rod, the shading of a rod lit from one side). Not a
+    pole: edges whose inside comes back to their outer level (two things, or the gap between
+    them), or, where the image's two outer levels agree (the background at both ends), to
+    that level (the gap between a pole and a sample of one level: a bar too, and where it
+    was the narrower it was taken for the pole). A bar inside another is the rod's surface.
+    Of what remains, the narrowest; a VisionError where another shares an edge with it, or
+    lies beside it with no edge between them and is not _CLEARLY_WIDER (either could be the
+    pole: a full-height sample narrower than the pole was taken for it, and the tilt's sign
+    flipped). Only edges measured in at least _MIN_ROWS_SHARE of ``rows`` count: a line
+    fitted through pieces of a penumbra (in 20 % of the rows, 1.2 px rms, 5 deg off) between
+    a pole and its shadow on the wall behind stood between them, so they did not count as
+    side by side and the shadow, the narrower, was taken for the pole."""
     srt = sorted((e for e in edges if _length(e) >= _MIN_ROWS_SHARE * rows),
                  key=lambda e: e.x_mid_px)
     if len(srt) < 2:
