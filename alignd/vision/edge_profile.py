@@ -116,6 +116,10 @@ def solve_rows(B: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return np.linalg.solve(Bt @ B + 1e-9 * np.eye(4), Bt @ Y)
 
 
+class _OffTheWindows(Exception):
+    """The edge fit left its windows: there is no step there to fit."""
+
+
 def _gauss_newton(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray,
                   spread: Spread, iterations: int = 12
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -168,10 +172,6 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
                                   min_rows, spread, clip_levels)
     except _OffTheWindows:
         return None
-
-
-class _OffTheWindows(Exception):
-    """The edge fit left its windows: there is no step there to fit."""
 
 
 def _fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,

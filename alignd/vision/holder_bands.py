@@ -228,11 +228,11 @@ _DEEP, _DEEP_FROM, _FLAT = 12.0, 1.5, 0.05
 _DEEP_BINS = np.arange(-_REACH - _DEEP - _DEEP_FROM, 0.0, 0.5)
 
 
-def _rough_face(gray: np.ndarray, ci: np.ndarray, lens: Lens | None, k: int, inner: float,
-                step: float) -> bool:
+def _rough_face(deep: tuple[np.ndarray, ...], k: int, inner: float, step: float) -> bool:
     """Whether the face inside side ``k``'s inner step varies as much as a band: texture
-    (:data:`_DEEP`, :data:`_FLAT`), whose inner step is one more of its lines."""
-    x, m, cnt, _within, _foot = _profiles(gray, ci, lens, _DEEP_BINS)
+    (:data:`_DEEP`, :data:`_FLAT`), whose inner step is one more of its lines. ``deep``:
+    the sides' profiles read over :data:`_DEEP_BINS` (:func:`_profiles`)."""
+    x, m, cnt = deep[:3]
     use = (cnt[k] > 0) & (x[k] >= inner - _DEEP_FROM - _DEEP) & (x[k] <= inner - _DEEP_FROM)
     if use.sum() < 8:
         return False
@@ -288,6 +288,7 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
     best = [int(np.flatnonzero(rows == k)[np.argmin(cost2[rows == k])]) for k in todo]
     P2, cost2, A2 = _fit(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2)
     bands = []
+    deep: tuple[np.ndarray, ...] | None = None
     for b, k in enumerate(todo):
         _a, _g, s2, c1, d1, c2, d2 = P2[b]
         inner, outer = (d1, d2) if d1 <= d2 else (d2, d1)
@@ -306,7 +307,9 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
                                                     foot[k:k + 1], 1)[0][0],
                                 cnt[k], inner, outer, foot[k], float(c0[k]))):
             continue
-        if _rough_face(gray, ci, lens, int(k), inner, min(abs(c1), abs(c2))):
+        if deep is None:  # read once, for the first side that gets this far
+            deep = _profiles(gray, ci, lens, _DEEP_BINS)
+        if _rough_face(deep, int(k), inner, min(abs(c1), abs(c2))):
             continue
         # inner's standard error: the normal matrix scaled by the pixels' scatter about
         # the fit (within the bins and the bins' about the model)
