@@ -41,7 +41,7 @@ from alignd.vision.holder_steps import side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import step_response
 
-__all__ = ["Band", "side_bands"]
+__all__ = ["Band", "fit_steps", "side_bands", "side_profiles"]
 
 _REACH = 8.0  # px either side of the found side
 _BIN = 0.2  # px: the pixels are binned by their distance to the side
@@ -88,7 +88,7 @@ class Band:
     sigma_px: float  # standard error of inner_px (from the fit's residuals)
 
 
-def _profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None,
+def side_profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None,
               bins: np.ndarray = _EDGES) -> tuple[np.ndarray, ...]:
     """Each side's pixels within ``_REACH`` of it along its middle (``_ALONG``), binned
     by their distance to it in the ideal image (``ci``: the corners there; + outward,
@@ -140,32 +140,40 @@ def _profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None,
     return xs, ms, cnt, within, foot
 
 
-def _model(P: np.ndarray, x: np.ndarray, foot: np.ndarray, steps: int
-           ) -> tuple[np.ndarray, np.ndarray]:
+def _model(P: np.ndarray, x: np.ndarray, foot: np.ndarray, steps: int,
+           own_blur: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The profile a + g x + sum_j c_j S(x - d_j) for each row of P = (a, g, s, c_1, d_1,
     ...) at the distances ``x`` (rows), S a pixel's response to a step blurred by s
     (:func:`step_response`, the footprint ``foot``), and its Jacobian: (B, bins) and
-    (B, bins, 3 + 2 steps)."""
+    (B, bins, 3 + 2 steps). ``own_blur``: the last step has its own blur, P's last
+    column (a penumbra beside an edge)."""
     s = P[:, 2:3]
     f = P[:, 0:1] + P[:, 1:2] * x
     cols = [np.ones_like(f), x, np.zeros_like(f)]
+    last = []
     for j in range(steps):
         c, d = P[:, 3 + 2 * j:4 + 2 * j], P[:, 4 + 2 * j:5 + 2 * j]
-        S, S1, S2 = step_response(x - d, s, foot[:, 0:1], foot[:, 1:2])
+        sj = P[:, -1:] if own_blur and j == steps - 1 else s
+        S, S1, S2 = step_response(x - d, sj, foot[:, 0:1], foot[:, 1:2])
         f = f + c * S
-        cols[2] = cols[2] + c * s * S2  # dS/ds = s d2S/dd2
+        if sj is s:
+            cols[2] = cols[2] + c * s * S2  # dS/ds = s d2S/dd2
+        else:
+            last = [c * sj * S2]
         cols += [S, -c * S1]
-    return f, np.stack(cols, axis=2)
+    return f, np.stack(cols + last, axis=2)
 
 
-def _fit(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
-         steps: int, iterations: int = 40) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
+              steps: int, iterations: int = 40, reach: float = _REACH, own_blur: bool = False
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt for many profiles at once (rows of ``P``; ``x``, ``m`` the
-    profiles, ``w`` their weights, ``foot`` the pixels' footprints): the parameters, the
+    profiles, ``w`` their weights, ``foot`` the pixels' footprints; the steps kept within
+    ``reach`` - 0.5 px of the side; ``own_blur``: see :func:`_model`): the parameters, the
     weighted residual sums of squares and the normal matrices at the end."""
     P = P.copy()
     lam = np.full(len(P), 1e-3)
-    f, J = _model(P, x, foot, steps)
+    f, J = _model(P, x, foot, steps, own_blur)
     cost = np.sum(w * (m - f) ** 2, axis=1)
     eye = np.eye(P.shape[1])[None]
     live = np.ones(len(P), bool)  # rows still improving
@@ -184,8 +192,10 @@ def _fit(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.nd
             break
         Q = P[b] + step
         Q[:, 2] = np.clip(Q[:, 2], 0.2, 4.0)
-        Q[:, 4::2] = np.clip(Q[:, 4::2], -_REACH + 0.5, _REACH - 0.5)
-        fq, Jq = _model(Q, x[b], foot[b], steps)
+        if own_blur:
+            Q[:, -1] = np.clip(Q[:, -1], 0.2, 4.0)
+        Q[:, 4::2] = np.clip(Q[:, 4::2], -reach + 0.5, reach - 0.5)
+        fq, Jq = _model(Q, x[b], foot[b], steps, own_blur)
         cq = np.sum(w[b] * (m[b] - fq) ** 2, axis=1)
         better = cq < cost[b]
         ib = b[better]
@@ -231,7 +241,7 @@ _DEEP_BINS = np.arange(-_REACH - _DEEP - _DEEP_FROM, 0.0, 0.5)
 def _rough_face(deep: tuple[np.ndarray, ...], k: int, inner: float, step: float) -> bool:
     """Whether the face inside side ``k``'s inner step varies as much as a band: texture
     (:data:`_DEEP`, :data:`_FLAT`), whose inner step is one more of its lines. ``deep``:
-    the sides' profiles read over :data:`_DEEP_BINS` (:func:`_profiles`)."""
+    the sides' profiles read over :data:`_DEEP_BINS` (:func:`side_profiles`)."""
     x, m, cnt = deep[:3]
     use = (cnt[k] > 0) & (x[k] >= inner - _DEEP_FROM - _DEEP) & (x[k] <= inner - _DEEP_FROM)
     if use.sum() < 8:
@@ -255,7 +265,7 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
     beside it)."""
     c = np.asarray(corners, float)
     ci = c if lens is None else lens.undistort(c)
-    x, m, cnt, within, foot = _profiles(gray, ci, lens)
+    x, m, cnt, within, foot = side_profiles(gray, ci, lens)
     usable = cnt.sum(axis=1) >= 200
     if not usable.any():
         return []
@@ -268,7 +278,7 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
     d0 = np.array([x[k, held[k]][np.argmin(np.abs(mid[k, held[k]] - 0.5))] if held[k].any()
                    else 0.0 for k in range(4)])  # where the profile is half-way
     P1 = np.column_stack([lo, np.zeros(4), np.full(4, 0.7), c0, d0])
-    P1, cost1, _ = _fit(P1, x, m, cnt, foot, 1)
+    P1, cost1, _ = fit_steps(P1, x, m, cnt, foot, 1)
     # one step fits a side between two steps worse than the others: only sides whose
     # misfit (per pixel, over the step squared) is _WORSE times the best side's are
     # fitted with two (a band all round is left alone anyway; that fit costs 2-3 ms a
@@ -284,9 +294,9 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
     rows = np.repeat(todo, len(starts))
     # a few steps from every start, then the best start of each side to the end (most
     # starts of a side end in the same place; the others wander and cost iterations)
-    P2, cost2, _ = _fit(P2, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5)
+    P2, cost2, _ = fit_steps(P2, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5)
     best = [int(np.flatnonzero(rows == k)[np.argmin(cost2[rows == k])]) for k in todo]
-    P2, cost2, A2 = _fit(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2)
+    P2, cost2, A2 = fit_steps(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2)
     bands = []
     deep: tuple[np.ndarray, ...] | None = None
     for b, k in enumerate(todo):
@@ -308,7 +318,7 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
                                 cnt[k], inner, outer, foot[k], float(c0[k]))):
             continue
         if deep is None:  # read once, for the first side that gets this far
-            deep = _profiles(gray, ci, lens, _DEEP_BINS)
+            deep = side_profiles(gray, ci, lens, _DEEP_BINS)
         if _rough_face(deep, int(k), inner, min(abs(c1), abs(c2))):
             continue
         # inner's standard error: the normal matrix scaled by the pixels' scatter about
