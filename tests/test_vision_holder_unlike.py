@@ -77,8 +77,10 @@ def test_without_the_blur_check_the_shadowed_side_was_taken(
     # 1 px band beside the next side stays merged: 0.36 px) ...
     det = track_holder(_shadowed(150.0), expected_size_px=(124.0, 112.0))
     assert det.ok and _err(det.corners_px, _HOLDER) < 0.5
-    # ... without it, the shadowed side was taken
+    # ... without it (and without the second look beside the sides, which now finds the
+    # band's outer edge beyond the side too), the shadowed side was taken
     monkeypatch.setattr(holder, "side_bands", lambda gray, corners, lens: [])
+    monkeypatch.setattr(holder, "neighbour_steps", lambda gray, corners, lens=None: [])
     det = track_holder(_shadowed(150.0), expected_size_px=(124.0, 112.0))
     assert det.ok and _err(det.corners_px, _HOLDER) > 1.0
 
