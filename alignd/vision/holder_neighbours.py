@@ -9,7 +9,7 @@ side").
 
 Here each side's pixels within 14 px of it are binned by their distance to it (as in
 :mod:`alignd.vision.holder_bands`) and fitted by one blurred step. A side that step misfits
-(by four times its pixels' scatter and 0.6 % of the step) is fitted by two: a grid of both
+(by four times its pixels' scatter and 0.8 % of the step) is fitted by two: a grid of both
 places and two blurs for the start, Levenberg-Marquardt with one blur, then the far step
 with its own. It has a :class:`Neighbour` where two steps fit far better, the found side
 on one of them, the other resolved from it, as sharp as an edge (a soft shadow's penumbra
@@ -51,7 +51,8 @@ _MIN_SEP = 1.5
 _RESOLVED = 1.8
 _FAR = 13.0
 _MIN_SHARE = 0.08
-_MISFIT = 0.006  # the screen (neighbour_steps): clean sides 0.1-0.4 %, plates 2 px in 0.85 %
+_MISFIT = 0.008  # the screen: drawn clean sides 0.1-0.4 %, our renderer's 0.7 %, plates 2 px in
+# 0.85 % (a plate 2 px in less than that is left as it was)
 _FLAT = 0.1
 _BEYOND = 1.5
 # the far step at most _SHARP times the side's blur and _SHARP_PX more: a plate's edge or a
