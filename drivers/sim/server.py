@@ -151,8 +151,6 @@ class FaultInjector:
                     st.fired = disconnect = True
                     st.hits += 1
                 continue
-            st.fired = True
-            st.hits += 1
             targets = [ax for addr, ax in emulator.axes.items()
                        if f.axis is None or ax.name == f.axis]
             for ax in targets:
@@ -161,6 +159,11 @@ class FaultInjector:
                     ax.inject_stall()
                 elif f.kind == "limit_switch":
                     ax.inject_limit_switch("high")
+            # marked fired once it is in place: a thread that waits for ``fired`` (a test
+            # that then moves the clock) must find the axis already stalled (it read the
+            # position between the two and saw the axis move on)
+            st.hits += 1
+            st.fired = True
         return disconnect
 
 
