@@ -49,7 +49,7 @@ def test_a_plate_near_the_sides_is_measured_without_its_edge(insets, angle, leve
 
 def test_without_the_second_look_the_plate_pulls_the_sides(monkeypatch) -> None:
     """The same frames without the check: the plate's edge moves sides by tenths of a px."""
-    monkeypatch.setattr(holder, "neighbour_steps", lambda gray, corners, lens=None: [])
+    monkeypatch.setattr(holder, "neighbour_steps", lambda *_a, **_k: [])
     errs = []
     for insets, angle, levels in PLATES[:3]:
         img, held = plate_scene(insets, angle, levels)

@@ -79,8 +79,8 @@ def test_without_the_blur_check_the_shadowed_side_was_taken(
     assert det.ok and _err(det.corners_px, _HOLDER) < 0.5
     # ... without it (and without the second look beside the sides, which now finds the
     # band's outer edge beyond the side too), the shadowed side was taken
-    monkeypatch.setattr(holder, "side_bands", lambda gray, corners, lens: [])
-    monkeypatch.setattr(holder, "neighbour_steps", lambda gray, corners, lens=None: [])
+    monkeypatch.setattr(holder, "side_bands", lambda *_a, **_k: [])
+    monkeypatch.setattr(holder, "neighbour_steps", lambda *_a, **_k: [])
     det = track_holder(_shadowed(150.0), expected_size_px=(124.0, 112.0))
     assert det.ok and _err(det.corners_px, _HOLDER) > 1.0
 
@@ -361,7 +361,8 @@ def test_a_banded_holder_is_tracked_off_its_band(monkeypatch: pytest.MonkeyPatch
     assert _err(again.corners_px, held) < 0.3
     calls: list[int] = []
 
-    def counted(gray: np.ndarray, corners: np.ndarray, lens: object = None) -> list[object]:
+    def counted(gray: np.ndarray, corners: np.ndarray, lens: object = None,
+                profiles: object = None) -> list[object]:
         calls.append(1)
         return []
     clean, _ = _hard_shadow(0.0, -16.8)

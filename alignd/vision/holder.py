@@ -49,7 +49,9 @@ from alignd.vision.edges import (
     intersect,
     residual_correlation,
 )
-from alignd.vision.holder_bands import side_bands
+from alignd.vision.holder_bands import REACH as BAND_REACH
+from alignd.vision.holder_bands import SideProfiles, read_sides, side_bands
+from alignd.vision.holder_neighbours import REACH as NEIGHBOUR_REACH
 from alignd.vision.holder_neighbours import neighbour_steps, without_neighbours
 from alignd.vision.holder_search import search_candidates
 from alignd.vision.holder_steps import inner_step, side_frame
@@ -598,19 +600,26 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
     if det.ok:
         det = replace(det, clipped_sides=int(np.count_nonzero(
             _clipped_shares(gray, used) > _SATURATED_SHARE)))
+    # the sides' profiles, read once for the band check and the neighbour look (whose
+    # reach is the larger) at the corners found
+    prof = None
+    if det.ok and (bands or neighbours):
+        prof = read_sides(gray, det.corners_px, lens, NEIGHBOUR_REACH if neighbours else
+                          BAND_REACH)
         if bands:
-            det = _off_the_bands(gray, det, lens, expected_size_px, size_tolerance)
+            det = _off_the_bands(gray, det, lens, expected_size_px, size_tolerance, prof)
     if neighbours and not det.banded_sides:
         det = _off_the_neighbours(gray, det, corners, polarity, expected_size_px, hint,
-                                  min_contrast, max_rms_px, lens, size_tolerance, profile)
+                                  min_contrast, max_rms_px, lens, size_tolerance, profile,
+                                  prof)
     return det
 
 
 def _off_the_neighbours(gray: np.ndarray, det: HolderDetection, corners: np.ndarray,
                         polarity: str | None, expected_size_px: tuple[float, float] | None,
                         hint: np.ndarray | None, min_contrast: float, max_rms_px: float,
-                        lens: Lens | None, size_tolerance: float, profile: bool
-                        ) -> HolderDetection:
+                        lens: Lens | None, size_tolerance: float, profile: bool,
+                        prof: SideProfiles | None = None) -> HolderDetection:
     """``det`` measured again without the second steps near its sides
     (:mod:`alignd.vision.holder_neighbours`), from its corners or, where the checks refused
     it (a side that scatters, profiles that do not fit), the corners its windows sat on;
@@ -619,10 +628,12 @@ def _off_the_neighbours(gray: np.ndarray, det: HolderDetection, corners: np.ndar
     The steps are found and removed along the sides given, so each pass starts from the
     previous one's corners, until they move by under ``_NEIGHBOURS_SETTLED_PX`` (a side a
     pixel off its edge, or at an angle to it, reads a blurred step at the wrong place:
-    from a coarse box 2.9 px off at one end, one pass left two sides 0.44 px off)."""
+    from a coarse box 2.9 px off at one end, one pass left two sides 0.44 px off).
+    ``prof``: the profiles of ``det``'s sides, read already when it is ok."""
     at = np.asarray(det.corners_px if det.ok else corners, float)
     for _ in range(_NEIGHBOURS_PASSES):
-        steps = neighbour_steps(gray, at, lens)
+        steps = neighbour_steps(gray, at, lens, prof if det.ok else None)
+        prof = None  # the next pass reads its own, at the corners it starts from
         if not steps:
             return det
         clean = without_neighbours(gray, at, steps, lens)
@@ -659,13 +670,14 @@ def _window_reach(corners: np.ndarray) -> np.ndarray:
 
 
 def _off_the_bands(gray: np.ndarray, det: HolderDetection, lens: Lens | None,
-                   expected_size_px: tuple[float, float] | None, size_tolerance: float
-                   ) -> HolderDetection:
+                   expected_size_px: tuple[float, float] | None, size_tolerance: float,
+                   prof: SideProfiles | None = None) -> HolderDetection:
     """``det`` with each side found between two steps or on the outer one (a hard
     shadow's band beside it, :func:`alignd.vision.holder_bands.side_bands`) moved in to
     the inner step, the holder's edge; its corners' sigma grows by that step's standard
-    error. Not ok when the moved holder's size fails the size check."""
-    bands = side_bands(gray, det.corners_px, lens)
+    error. Not ok when the moved holder's size fails the size check. ``prof``: the
+    profiles of ``det``'s sides, if read already."""
+    bands = side_bands(gray, det.corners_px, lens, prof)
     if not bands:
         return det
     c = np.asarray(det.corners_px, float)

@@ -41,12 +41,12 @@ from alignd.vision.holder_steps import side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import step_response
 
-__all__ = ["Band", "fit_steps", "side_bands", "side_profiles"]
+__all__ = ["REACH", "Band", "SideProfiles", "fit_steps", "profile_bins", "read_sides", "side_bands",
+           "side_profiles", "steps_model"]
 
-_REACH = 8.0  # px either side of the found side
+REACH = 8.0  # px either side of the found side: the profiles :func:`side_bands` reads
 _BIN = 0.2  # px: the pixels are binned by their distance to the side
 _ALONG = (0.15, 0.85)  # the part of the side read (corners and their shadows left out)
-_EDGES = np.arange(-_REACH, _REACH + _BIN / 2, _BIN)
 # the decision (docs/vision.md, "A side between two steps"): two steps of one sign fit a
 # side _MIN_GAIN times better than one, their sum within _WHOLE of the side's whole step
 # (tails to tails), their blur at most _SHARPER px over the one step's, at least _MIN_SEP
@@ -88,20 +88,59 @@ class Band:
     sigma_px: float  # standard error of inner_px (from the fit's residuals)
 
 
+@dataclass(frozen=True)
+class SideProfiles:
+    """The four sides' profiles across them (:func:`side_profiles`): the bins' mean
+    distances to the side (+ outward), mean levels, pixel counts and the pixels' spread
+    within them (sums of squares about the bin's mean), each (4, bins); the bins' edges;
+    and the sides' footprint widths (4, 2), a pixel's square seen across the side
+    (:func:`step_response`). Read once, the band check and the neighbour look share it."""
+
+    x: np.ndarray
+    m: np.ndarray
+    cnt: np.ndarray
+    within: np.ndarray
+    bins: np.ndarray
+    foot: np.ndarray
+
+    def within_reach(self, reach: float) -> SideProfiles:
+        """The bins within ``reach`` px of the side (the edges a multiple of ``_BIN``)."""
+        i = np.flatnonzero(np.abs(self.bins) <= reach + 1e-9)
+        a, b = int(i[0]), int(i[-1])
+        return SideProfiles(self.x[:, a:b], self.m[:, a:b], self.cnt[:, a:b],
+                            self.within[:, a:b], self.bins[a:b + 1], self.foot)
+
+
+def profile_bins(reach: float) -> np.ndarray:
+    """Bin edges ``_BIN`` px apart from -``reach`` to ``reach``: those of a smaller reach
+    are exactly a slice of a larger one's (:meth:`SideProfiles.within_reach`)."""
+    n = round(reach / _BIN)
+    return _BIN * np.arange(-n, n + 1)
+
+
+def read_sides(gray: np.ndarray, corners: np.ndarray, lens: Lens | None, reach: float
+               ) -> SideProfiles:
+    """:func:`side_profiles` of the quadrilateral ``corners`` (frame pixels) within
+    ``reach`` px of its sides, in ``_BIN`` px bins."""
+    c = np.asarray(corners, float)
+    return side_profiles(gray, c if lens is None else lens.undistort(c), lens,
+                         profile_bins(reach))
+
+
 def side_profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None,
-              bins: np.ndarray = _EDGES) -> tuple[np.ndarray, ...]:
-    """Each side's pixels within ``_REACH`` of it along its middle (``_ALONG``), binned
-    by their distance to it in the ideal image (``ci``: the corners there; + outward,
-    ``_BIN`` px bins; or ``bins``, their edges): the bins' mean distances, mean levels and
-    pixel counts, each (4, bins), the pixels' spread within the bins (4,) and the sides'
-    footprint widths (4, 2) (a pixel's square seen across the side: :func:`step_response`)."""
+                  bins: np.ndarray) -> SideProfiles:
+    """Each side's pixels within the ``bins``' reach of it along its middle (``_ALONG``),
+    binned by their distance to it in the ideal image (``ci``: the corners there; +
+    outward; ``bins``: the bins' edges), as :class:`SideProfiles`."""
     h, w = gray.shape
+    flat = gray.reshape(-1) if gray.flags.c_contiguous else np.ascontiguousarray(gray).reshape(-1)
     edge, length, n = side_frame(ci)
     u = edge / np.maximum(length, 1e-9)[:, None]
     nb = bins.size - 1
     far = float(np.max(np.abs(bins)))
-    xs, ms, cnt = np.zeros((4, nb)), np.zeros((4, nb)), np.zeros((4, nb))
-    within = np.zeros(4)
+    mids = 0.5 * (bins[:-1] + bins[1:])
+    xs, ms, cnt = np.tile(mids, (4, 1)), np.zeros((4, nb)), np.zeros((4, nb))
+    within = np.zeros((4, nb))
     for k in range(4):
         # the side's middle, traced in the frame one pixel column (row) at a time
         t = np.linspace(_ALONG[0], _ALONG[1], 16) * length[k]
@@ -115,33 +154,36 @@ def side_profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None,
         major = np.arange(lo, hi + 1, dtype=float)
         minor = np.interp(major, q[order, across], q[order, 1 - across])
         reach = math.ceil(far / max(abs(u[k, across]), 0.5)) + 2
-        off = np.arange(-reach, reach + 1, dtype=float)
-        mi = np.rint(minor)[:, None] + off[None, :]
-        ma = np.broadcast_to(major[:, None], mi.shape)
-        px = np.stack([ma, mi] if across == 0 else [mi, ma], axis=-1).reshape(-1, 2)
-        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        px = px[inside]
-        pi = px if lens is None else lens.undistort(px)
-        d = (pi - ci[k]) @ n[k]
-        along = (pi - ci[k]) @ u[k]
-        keep = (d >= bins[0]) & (d < bins[-1]) & (along >= _ALONG[0] * length[k]) & (
-            along <= _ALONG[1] * length[k])
+        mi = np.rint(minor)[:, None] + np.arange(-reach, reach + 1, dtype=float)[None, :]
+        ma = major[:, None]
+        xx, yy = (ma, mi) if across == 0 else (mi, ma)  # (rows, 1) and (rows, offsets)
+        if lens is None:
+            d = (xx - ci[k, 0]) * n[k, 0] + (yy - ci[k, 1]) * n[k, 1]
+            along = (xx - ci[k, 0]) * u[k, 0] + (yy - ci[k, 1]) * u[k, 1]
+        else:
+            px = np.stack(np.broadcast_arrays(xx, yy), axis=-1).reshape(-1, 2)
+            pi = lens.undistort(px) - ci[k]
+            d = (pi @ n[k]).reshape(mi.shape)
+            along = (pi @ u[k]).reshape(mi.shape)
+        keep = ((xx >= 0) & (xx < w) & (yy >= 0) & (yy < h) & (d >= bins[0]) & (d < bins[-1])
+                & (along >= _ALONG[0] * length[k]) & (along <= _ALONG[1] * length[k]))
         d = d[keep]
-        v = gray[px[keep, 1].astype(np.intp), px[keep, 0].astype(np.intp)].astype(float)
+        at = (np.broadcast_to(yy, keep.shape)[keep] * w
+              + np.broadcast_to(xx, keep.shape)[keep]).astype(np.intp)
+        v = flat[at].astype(float)
         idx = np.clip(np.searchsorted(bins, d) - 1, 0, nb - 1)
         c = np.bincount(idx, minlength=nb).astype(float)
-        sv = np.bincount(idx, v, nb)
-        sd = np.bincount(idx, d, nb)
-        m = sv / np.maximum(c, 1)
-        xs[k] = np.where(c > 0, sd / np.maximum(c, 1), 0.5 * (bins[:-1] + bins[1:]))
+        m = np.bincount(idx, v, nb) / np.maximum(c, 1)
+        held = c > 0
+        xs[k, held] = np.bincount(idx, d, nb)[held] / c[held]
         ms[k], cnt[k] = m, c
-        within[k] = float(np.sum(v * v) - np.sum(c * m * m))
+        within[k] = np.bincount(idx, v * v, nb) - c * m * m
     foot = np.sort(np.abs(n), axis=1)[:, ::-1]
-    return xs, ms, cnt, within, foot
+    return SideProfiles(xs, ms, cnt, within, bins, foot)
 
 
-def _model(P: np.ndarray, x: np.ndarray, foot: np.ndarray, steps: int,
-           own_blur: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def steps_model(P: np.ndarray, x: np.ndarray, foot: np.ndarray, steps: int,
+                own_blur: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The profile a + g x + sum_j c_j S(x - d_j) for each row of P = (a, g, s, c_1, d_1,
     ...) at the distances ``x`` (rows), S a pixel's response to a step blurred by s
     (:func:`step_response`, the footprint ``foot``), and its Jacobian: (B, bins) and
@@ -165,7 +207,7 @@ def _model(P: np.ndarray, x: np.ndarray, foot: np.ndarray, steps: int,
 
 
 def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
-              steps: int, iterations: int = 40, reach: float = _REACH, own_blur: bool = False
+              steps: int, iterations: int = 40, reach: float = REACH, own_blur: bool = False
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt for many profiles at once (rows of ``P``; ``x``, ``m`` the
     profiles, ``w`` their weights, ``foot`` the pixels' footprints; the steps kept within
@@ -173,7 +215,7 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
     weighted residual sums of squares and the normal matrices at the end."""
     P = P.copy()
     lam = np.full(len(P), 1e-3)
-    f, J = _model(P, x, foot, steps, own_blur)
+    f, J = steps_model(P, x, foot, steps, own_blur)
     cost = np.sum(w * (m - f) ** 2, axis=1)
     eye = np.eye(P.shape[1])[None]
     live = np.ones(len(P), bool)  # rows still improving
@@ -195,7 +237,7 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
         if own_blur:
             Q[:, -1] = np.clip(Q[:, -1], 0.2, 4.0)
         Q[:, 4::2] = np.clip(Q[:, 4::2], -reach + 0.5, reach - 0.5)
-        fq, Jq = _model(Q, x[b], foot[b], steps, own_blur)
+        fq, Jq = steps_model(Q, x[b], foot[b], steps, own_blur)
         cq = np.sum(w[b] * (m[b] - fq) ** 2, axis=1)
         better = cq < cost[b]
         ib = b[better]
@@ -235,14 +277,14 @@ def _resolvable(x: np.ndarray, r: np.ndarray, cnt: np.ndarray, inner: float, out
 # holder's side, and the side was moved onto it (3.7-3.9 px); such a face varies by 0.29
 # of that step, the face behind the synthetic hard shadows by 0.001-0.003
 _DEEP, _DEEP_FROM, _FLAT = 12.0, 1.5, 0.05
-_DEEP_BINS = np.arange(-_REACH - _DEEP - _DEEP_FROM, 0.0, 0.5)
+_DEEP_BINS = np.arange(-REACH - _DEEP - _DEEP_FROM, 0.0, 0.5)
 
 
-def _rough_face(deep: tuple[np.ndarray, ...], k: int, inner: float, step: float) -> bool:
+def _rough_face(deep: SideProfiles, k: int, inner: float, step: float) -> bool:
     """Whether the face inside side ``k``'s inner step varies as much as a band: texture
     (:data:`_DEEP`, :data:`_FLAT`), whose inner step is one more of its lines. ``deep``:
     the sides' profiles read over :data:`_DEEP_BINS` (:func:`side_profiles`)."""
-    x, m, cnt = deep[:3]
+    x, m, cnt = deep.x, deep.m, deep.cnt
     use = (cnt[k] > 0) & (x[k] >= inner - _DEEP_FROM - _DEEP) & (x[k] <= inner - _DEEP_FROM)
     if use.sum() < 8:
         return False
@@ -256,16 +298,20 @@ _SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, 
 _SPLITS = (0.0, 0.5, 1.0)  # ... the one step's place at the inner, middle, outer one
 
 
-def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
-               ) -> list[Band]:
+def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
+               profiles: SideProfiles | None = None) -> list[Band]:
     """The sides of the quadrilateral ``corners`` (4, 2, frame pixels, cyclic order; in a
     frame with ``lens`` distortion, measured in the ideal image) found between two steps
     the same way or on the outer one, outside the inner one (module docstring); [] when
     none is, or when two opposite sides are (a band all round lies inside the face, not
-    beside it)."""
+    beside it). ``profiles``: these sides' profiles already read (:func:`read_sides`, a
+    reach of ``REACH`` or more)."""
     c = np.asarray(corners, float)
     ci = c if lens is None else lens.undistort(c)
-    x, m, cnt, within, foot = side_profiles(gray, ci, lens)
+    prof = (profiles if profiles is not None else read_sides(gray, c, lens, REACH)
+            ).within_reach(REACH)
+    x, m, cnt, foot = prof.x, prof.m, prof.cnt, prof.foot
+    within = prof.within.sum(axis=1)
     usable = cnt.sum(axis=1) >= 200
     if not usable.any():
         return []
@@ -298,7 +344,7 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
     best = [int(np.flatnonzero(rows == k)[np.argmin(cost2[rows == k])]) for k in todo]
     P2, cost2, A2 = fit_steps(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2)
     bands = []
-    deep: tuple[np.ndarray, ...] | None = None
+    deep: SideProfiles | None = None
     for b, k in enumerate(todo):
         _a, _g, s2, c1, d1, c2, d2 = P2[b]
         inner, outer = (d1, d2) if d1 <= d2 else (d2, d1)
@@ -313,7 +359,7 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
                 and gain >= _MIN_GAIN
                 and outer - inner >= max(_MIN_SEP, _RESOLVED * s2)
                 and inner <= -_MIN_OFF and between
-                and _resolvable(x[k], m[k] - _model(P1[k:k + 1], x[k:k + 1],
+                and _resolvable(x[k], m[k] - steps_model(P1[k:k + 1], x[k:k + 1],
                                                     foot[k:k + 1], 1)[0][0],
                                 cnt[k], inner, outer, foot[k], float(c0[k]))):
             continue

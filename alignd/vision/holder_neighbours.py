@@ -31,15 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from alignd.vision.holder_bands import fit_steps, side_profiles
+from alignd.vision.holder_bands import SideProfiles, fit_steps, read_sides, steps_model
 from alignd.vision.holder_steps import side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import step_response
 
-__all__ = ["Neighbour", "neighbour_steps", "without_neighbours"]
+__all__ = ["REACH", "Neighbour", "neighbour_steps", "without_neighbours"]
 
-_REACH = 14.0  # px either side of the found side
-_BINS = np.arange(-_REACH, _REACH + 0.1, 0.2)
+REACH = 14.0  # px either side of the found side: the profiles :func:`neighbour_steps` reads
 # the decision: two steps fit _MIN_GAIN times better than one, the found side within _ON
 # px of one of them, the other at least _MIN_SEP px and _RESOLVED blurs from it (a
 # plateau between them) and within _FAR px of the side (beyond, no window reaches it), its
@@ -63,8 +62,8 @@ _BLURS = (0.7, 1.4)  # the grid's blurs (px)
 _SOFT = 3.0  # a far step that fits better this many times softer is a penumbra
 _GRID_GAIN = 1.5  # the grid's start must fit this many times better than one step
 _D1 = np.arange(-1.5, 1.51, 0.5)  # the side's own step (px from the found side)
-_D2 = np.arange(-_REACH + 1.0, _REACH - 0.99, 0.5)  # the other one's
-_TABLE_T = np.arange(-2.0 * _REACH - 2.0, 2.0 * _REACH + 2.01, 0.02)  # see _grid_start
+_D2 = np.arange(-REACH + 1.0, REACH - 0.99, 0.5)  # the other one's
+_TABLE_T = np.arange(-2.0 * REACH - 2.0, 2.0 * REACH + 2.01, 0.02)  # see _grid_start
 
 
 @dataclass(frozen=True)
@@ -127,13 +126,16 @@ def _grid_start(x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray
     return None if out is None else (out, best)
 
 
-def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None
-                    ) -> list[Neighbour]:
+def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
+                    profiles: SideProfiles | None = None) -> list[Neighbour]:
     """The sides of the quadrilateral ``corners`` (4, 2, frame pixels, cyclic order) with
-    a second step near them (module docstring); [] when none has."""
-    c = np.asarray(corners, float)
-    ci = c if lens is None else lens.undistort(c)
-    x, m, cnt, within, foot = side_profiles(gray, ci, lens, _BINS)
+    a second step near them (module docstring); [] when none has. ``profiles``: these
+    sides' profiles already read (:func:`alignd.vision.holder_bands.read_sides`, a reach
+    of :data:`REACH` or more)."""
+    prof = (profiles if profiles is not None else read_sides(gray, corners, lens, REACH)
+            ).within_reach(REACH)
+    x, m, cnt, foot = prof.x, prof.m, prof.cnt, prof.foot
+    within = prof.within.sum(axis=1)
     held = cnt > 0
     out = held & (x > 2.0) & (x < 4.0)  # one step, started from the levels 2-4 px either
     inn = held & (x < -2.0) & (x > -4.0)  # side of the found side
@@ -145,7 +147,7 @@ def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = N
     P1 = np.column_stack([lo, np.zeros(todo.size), np.full(todo.size, 0.8), hi - lo,
                           np.zeros(todo.size)])
     P1, cost1, _ = fit_steps(P1, x[todo], m[todo], cnt[todo], foot[todo], 1,
-                             iterations=_ITERATIONS, reach=_REACH)
+                             iterations=_ITERATIONS, reach=REACH)
     # only a side one step misfits by _MIN_GAIN times its pixels' scatter within the bins
     # can gain that much from two, and only one it misfits by _MISFIT of its step (rms)
     # has a step beside it worth the fit (clean sides: 0.1-0.4 %; plates 3-12 px in,
@@ -185,7 +187,7 @@ def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = N
         far = (wk > 0) & ((xk - d2) * np.sign(d2 - d1) >= _BEYOND * max(s2, 1.0))
         if far.sum() < 5:
             continue
-        f = _profile(fit[:8], xk[far], foot[k])
+        f = steps_model(fit[None, :8], xk[None, far], foot[None, k], 2, own_blur=True)[0][0]
         rms = math.sqrt(float(np.sum(wk[far] * (mk[far] - f) ** 2) / np.sum(wk[far])))
         if rms > _FLAT * abs(c2):
             continue
@@ -200,14 +202,6 @@ def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = N
     return found
 
 
-def _profile(p: np.ndarray, x: np.ndarray, foot: np.ndarray) -> np.ndarray:
-    """Two blurred steps of their own blurs on a sloping level: p = (a, g, s1, c1, d1,
-    c2, d2, s2), :func:`alignd.vision.holder_bands.fit_steps`' layout."""
-    a, g, s1, c1, d1, c2, d2, s2 = p
-    return (a + g * x + c1 * step_response(x - d1, s1, foot[0], foot[1])[0]
-            + c2 * step_response(x - d2, s2, foot[0], foot[1])[0])
-
-
 def _soft_far(x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
               start: np.ndarray) -> bool:
     """Whether the far step of a two-step ``start`` (:func:`_grid_start`) fits the profile
@@ -215,10 +209,10 @@ def _soft_far(x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
     slope and heights by linear least squares)."""
     _a, _g, s, _c1, d1, _c2, d2 = start
     S1 = step_response(x - d1, s, foot[0], foot[1])[0]
+    sw = np.sqrt(w)
     cost = []
     for s2 in (s, _SOFT * s):
         X = np.stack([np.ones_like(x), x, S1, step_response(x - d2, s2, foot[0], foot[1])[0]])
-        sw = np.sqrt(w)
         beta = np.linalg.lstsq((X * sw).T, m * sw, rcond=None)[0]
         cost.append(float(np.sum(w * (m - beta @ X) ** 2)))
     return cost[1] < cost[0]
@@ -233,7 +227,7 @@ def _two_steps(x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
     blurs then gain too little as well, or the far step is softer than an edge) or the
     steps swap places. All profiles in one batch: a fit costs what one profile's does."""
     # one blur first: from the grid's start, the far step's own blur went astray
-    P, cost, _ = fit_steps(starts, x, m, w, foot, 2, iterations=_ITERATIONS, reach=_REACH)
+    P, cost, _ = fit_steps(starts, x, m, w, foot, 2, iterations=_ITERATIONS, reach=REACH)
     ok = cost1 >= 0.5 * _MIN_GAIN * cost
     out: list[np.ndarray | None] = [None] * len(P)
     if not ok.any():
@@ -242,7 +236,7 @@ def _two_steps(x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
     swap = np.abs(one[:, 6]) < np.abs(one[:, 4])  # the side's own step first
     one[swap] = one[swap][:, [0, 1, 2, 5, 6, 3, 4]]
     P2, cost2, _ = fit_steps(np.column_stack([one, one[:, 2]]), x[ok], m[ok], w[ok],
-                             foot[ok], 2, iterations=_ITERATIONS, reach=_REACH, own_blur=True)
+                             foot[ok], 2, iterations=_ITERATIONS, reach=REACH, own_blur=True)
     for i, p, c in zip(np.flatnonzero(ok), P2, cost2, strict=True):
         if abs(p[6]) >= abs(p[4]):
             out[i] = np.append(p, c)
@@ -262,8 +256,8 @@ def without_neighbours(gray: np.ndarray, corners: np.ndarray, steps: list[Neighb
     h, w = out.shape
     for nb in steps:
         k = nb.side
-        box = np.concatenate([ci[k] + o * n[k] for o in (-_REACH - 2, _REACH + 2)]
-                             + [ci[(k + 1) % 4] + o * n[k] for o in (-_REACH - 2, _REACH + 2)])
+        box = np.concatenate([ci[k] + o * n[k] for o in (-REACH - 2, REACH + 2)]
+                             + [ci[(k + 1) % 4] + o * n[k] for o in (-REACH - 2, REACH + 2)])
         box = box.reshape(-1, 2) if lens is None else lens.distort(box.reshape(-1, 2))
         x0, y0 = np.maximum(np.floor(box.min(axis=0)).astype(int) - 2, 0)
         x1, y1 = np.minimum(np.ceil(box.max(axis=0)).astype(int) + 2, (w - 1, h - 1))
@@ -274,7 +268,7 @@ def without_neighbours(gray: np.ndarray, corners: np.ndarray, steps: list[Neighb
         pi = px if lens is None else lens.undistort(px)
         d = (pi - ci[k]) @ n[k]
         along = (pi - ci[k]) @ u[k]
-        sel = (np.abs(d) <= _REACH) & (along >= ends_px) & (along <= length[k] - ends_px)
+        sel = (np.abs(d) <= REACH) & (along >= ends_px) & (along <= length[k] - ends_px)
         at = nb.own_px + nb.at_px
         foot = np.sort(np.abs(n[k]))[::-1]
         S = step_response(d[sel] - at, nb.blur_px, foot[0], foot[1])[0]
