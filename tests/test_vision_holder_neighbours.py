@@ -15,6 +15,7 @@ import pytest
 from alignd.vision import holder
 from alignd.vision.holder import HolderDetection, order_corners, track_holder
 from alignd.vision.holder_neighbours import neighbour_steps, without_neighbours
+from alignd.vision.lens import Lens
 from drivers.sim.render import Polygon, Raster, coverage
 from drivers.sim.scenes import hard_shadow_scene, plate_scene, rectangle
 
@@ -35,7 +36,16 @@ PLATES = [((3.0, 3.0, 3.0, 3.0), 7.0, (60.0, 170.0, 230.0)),
           ((4.0, 20.0, 4.0, 20.0), 0.0, (60.0, 170.0, 230.0)),
           ((3.0, 3.0, 3.0, 3.0), 30.0, (200.0, 60.0, 130.0)),
           ((2.0, 2.0, 12.0, 12.0), -16.8, (200.0, 60.0, 110.0)),
-          ((6.0, 6.0, 6.0, 6.0), 7.0, (60.0, 170.0, 115.0))]
+          ((6.0, 6.0, 6.0, 6.0), 7.0, (60.0, 170.0, 115.0)),
+          # a plate darker than a dark holder 4 px inside both long sides: two steps the
+          # same way on opposite sides, one found side 0.45 px outside the outer one and
+          # the other 0.53: the first was taken for a band beside the holder and moved
+          # 4.45 px in, onto the plate's edge (a band on opposite sides is inside the face)
+          ((4.0, 20.0, 4.0, 20.0), 0.0, (200.0, 60.0, 20.0)),
+          # a plate 2 px inside every side, lighter than a light holder: the sides found
+          # first lie between the steps (0.6-0.9 px off), where the start's coarse grid
+          # gained only 1.1-1.3 times on one step and was dropped
+          ((2.0, 2.0, 2.0, 2.0), 7.0, (60.0, 170.0, 230.0))]
 
 
 @pytest.mark.parametrize(("insets", "angle", "levels"), PLATES)
@@ -44,6 +54,18 @@ def test_a_plate_near_the_sides_is_measured_without_its_edge(insets, angle, leve
     det = track_holder(img, expected_size_px=_SIZE)
     assert det.ok, det.reason
     assert det.neighbour_sides >= 2
+    assert _err(det, held) <= 0.1
+
+
+@pytest.mark.parametrize("k1", [-0.12, 0.12])
+def test_a_plate_seen_through_a_distorting_lens(k1: float) -> None:
+    """Off the lens's centre, where the sides curve: a plate 4 px inside the long sides
+    first pulled them 1.4-1.9 px (with k1 = 0.12 past the 1.5 px the own step was looked
+    for within, and the wrong holder was returned ok)."""
+    img, held = plate_scene((4.0, 20.0, 4.0, 20.0), 0.0, k1=k1, centre_px=(420.0, 230.0))
+    det = track_holder(img, expected_size_px=_SIZE, lens=Lens(1000.0, (640.0, 360.0), k1))
+    assert det.ok, det.reason
+    assert det.neighbour_sides == 2
     assert _err(det, held) <= 0.1
 
 

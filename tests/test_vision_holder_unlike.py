@@ -333,7 +333,10 @@ def test_side_bands_reads_the_inner_step() -> None:
 
 def test_a_band_on_opposite_sides_is_left_alone() -> None:
     """Two opposite sides each 1 px outside a 2 px band: a band on both sides of one face
-    is not one shadow (a chamfer, a frame round the face): nothing is reported."""
+    is not one shadow (a chamfer, a frame round the face, a plate inside it): nothing is
+    reported, wherever the found sides lie (before, with one of them on the inner step,
+    the other was reported and moved in: a dark plate 4 px inside a dark holder's long
+    sides cut it 4.45 px short)."""
     held = rectangle((492.4, 221.1), 303.2, 193.0, 3.0)
     wider = rectangle((492.4, 221.1), 303.2 + 4.0, 193.0, 3.0)
     img = (210.0 + (128.0 - 210.0) * coverage(Polygon(wider), _WIDE_RAS, (0, 0, _WIDE_W, _WIDE_H))
@@ -341,10 +344,14 @@ def test_a_band_on_opposite_sides_is_left_alone() -> None:
     img = _noisy(img, 0.49, 0)
     found = rectangle((492.4, 221.1), 303.2 + 2.0, 193.0, 3.0)
     assert side_bands(img, found) == []
-    # one of them alone (the other side on the holder's edge) is reported, 1 px out
     axis = np.array([np.cos(np.radians(3.0)), np.sin(np.radians(3.0))])
     one = rectangle(np.array([492.4, 221.1]) + 0.5 * axis, 303.2 + 1.0, 193.0, 3.0)
-    bands = side_bands(img, one)
+    assert side_bands(img, one) == []
+    # a band along one of them only is reported, the side 1 px out moved in to it
+    wider = rectangle(np.array([492.4, 221.1]) + 1.0 * axis, 303.2 + 2.0, 193.0, 3.0)
+    img = (210.0 + (128.0 - 210.0) * coverage(Polygon(wider), _WIDE_RAS, (0, 0, _WIDE_W, _WIDE_H))
+           + (85.0 - 128.0) * coverage(Polygon(held), _WIDE_RAS, (0, 0, _WIDE_W, _WIDE_H)))
+    bands = side_bands(_noisy(img, 0.49, 0), one)
     assert len(bands) == 1
     assert bands[0].inner_px == pytest.approx(-1.0, abs=0.05)
 

@@ -303,9 +303,10 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
     """The sides of the quadrilateral ``corners`` (4, 2, frame pixels, cyclic order; in a
     frame with ``lens`` distortion, measured in the ideal image) found between two steps
     the same way or on the outer one, outside the inner one (module docstring); [] when
-    none is, or when two opposite sides are (a band all round lies inside the face, not
-    beside it). ``profiles``: these sides' profiles already read (:func:`read_sides`, a
-    reach of ``REACH`` or more)."""
+    none is, or when the side opposite one that is steps twice the same way as well,
+    wherever its found side lies (a band all round lies inside the face, not beside it).
+    ``profiles``: these sides' profiles already read (:func:`read_sides`, a reach of
+    ``REACH`` or more)."""
     c = np.asarray(corners, float)
     ci = c if lens is None else lens.undistort(c)
     prof = (profiles if profiles is not None else read_sides(gray, c, lens, REACH)
@@ -330,54 +331,74 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
     # fitted with two (a band all round is left alone anyway; that fit costs 2-3 ms a
     # side)
     misfit = cost1 / np.maximum(cnt.sum(axis=1) * P1[:, 3] ** 2, 1e-12)
+    usable_any = usable.copy()
     usable &= misfit >= _WORSE * float(np.min(misfit[usable]))
     if not usable.any():
         return []
-    todo = np.flatnonzero(usable)
-    starts = [(sep, split) for sep in _SEPS for split in _SPLITS]
-    P2 = np.array([[a, 0.0, 0.6 * s1, cc / 2, d - split * sep, cc / 2, d - split * sep + sep]
-                   for (a, _g, s1, cc, d) in P1[todo] for sep, split in starts])
-    rows = np.repeat(todo, len(starts))
-    # a few steps from every start, then the best start of each side to the end (most
-    # starts of a side end in the same place; the others wander and cost iterations)
-    P2, cost2, _ = fit_steps(P2, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5)
-    best = [int(np.flatnonzero(rows == k)[np.argmin(cost2[rows == k])]) for k in todo]
-    P2, cost2, A2 = fit_steps(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2)
-    bands = []
     deep: SideProfiles | None = None
-    for b, k in enumerate(todo):
-        _a, _g, s2, c1, d1, c2, d2 = P2[b]
-        inner, outer = (d1, d2) if d1 <= d2 else (d2, d1)
-        share = min(abs(c1), abs(c2)) / max(abs(c1) + abs(c2), 1e-9)
-        gain = float(cost1[k] / max(cost2[b], 1e-12))
-        # two steps that make the side's whole step between them (not two large ones
-        # cancelling each other over a sloping floor), each as sharp as one edge
-        whole = abs((c1 + c2) / c0[k] - 1.0) <= _WHOLE if c0[k] != 0 else False
-        # the found side between the steps, or on the outer one with the inner one near
-        between = outer >= _MIN_IN or (abs(outer) <= _ON_OUTER and inner >= -_MAX_IN)
-        if not (c1 * c2 > 0 and whole and s2 <= P1[k, 2] + _SHARPER and share >= _MIN_SHARE
-                and gain >= _MIN_GAIN
-                and outer - inner >= max(_MIN_SEP, _RESOLVED * s2)
-                and inner <= -_MIN_OFF and between
-                and _resolvable(x[k], m[k] - steps_model(P1[k:k + 1], x[k:k + 1],
-                                                    foot[k:k + 1], 1)[0][0],
-                                cnt[k], inner, outer, foot[k], float(c0[k]))):
-            continue
-        if deep is None:  # read once, for the first side that gets this far
-            deep = side_profiles(gray, ci, lens, _DEEP_BINS)
-        if _rough_face(deep, int(k), inner, min(abs(c1), abs(c2))):
-            continue
-        # inner's standard error: the normal matrix scaled by the pixels' scatter about
-        # the fit (within the bins and the bins' about the model)
-        j = 4 if d1 <= d2 else 6
-        var_px = (float(cost2[b]) + within[k]) / max(float(cnt[k].sum()) - 7.0, 1.0)
-        try:
-            var = float(np.linalg.inv(A2[b])[j, j]) * var_px
-        except np.linalg.LinAlgError:
-            var = math.inf
-        bands.append(Band(int(k), float(inner), float(outer), float(share), gain,
-                          math.sqrt(max(var, 0.0))))
-    sides = {b.side for b in bands}
-    if any((k + 2) % 4 in sides for k in sides):
+
+    def examine(todo: np.ndarray) -> tuple[list[Band], set[int]]:
+        """The sides ``todo`` fitted with two steps: the bands beside them, and every
+        side that steps twice the same way, wherever its found side lies."""
+        nonlocal deep
+        starts = [(sep, split) for sep in _SEPS for split in _SPLITS]
+        P2 = np.array([[a, 0.0, 0.6 * s1, cc / 2, d - split * sep, cc / 2,
+                        d - split * sep + sep]
+                       for (a, _g, s1, cc, d) in P1[todo] for sep, split in starts])
+        rows = np.repeat(todo, len(starts))
+        # a few steps from every start, then the best start of each side to the end (most
+        # starts of a side end in the same place; the others wander and cost iterations)
+        P2, cost2, _ = fit_steps(P2, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5)
+        best = [int(np.flatnonzero(rows == k)[np.argmin(cost2[rows == k])]) for k in todo]
+        P2, cost2, A2 = fit_steps(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2)
+        bands, twice = [], set()
+        for b, k in enumerate(todo):
+            _a, _g, s2, c1, d1, c2, d2 = P2[b]
+            inner, outer = (d1, d2) if d1 <= d2 else (d2, d1)
+            share = min(abs(c1), abs(c2)) / max(abs(c1) + abs(c2), 1e-9)
+            gain = float(cost1[k] / max(cost2[b], 1e-12))
+            # two steps that make the side's whole step between them (not two large ones
+            # cancelling each other over a sloping floor), each as sharp as one edge
+            whole = abs((c1 + c2) / c0[k] - 1.0) <= _WHOLE if c0[k] != 0 else False
+            if not (c1 * c2 > 0 and whole and s2 <= P1[k, 2] + _SHARPER
+                    and share >= _MIN_SHARE and gain >= _MIN_GAIN
+                    and outer - inner >= max(_MIN_SEP, _RESOLVED * s2)
+                    and _resolvable(x[k], m[k] - steps_model(P1[k:k + 1], x[k:k + 1],
+                                                             foot[k:k + 1], 1)[0][0],
+                                    cnt[k], inner, outer, foot[k], float(c0[k]))):
+                continue
+            twice.add(int(k))
+            # the found side between the steps, or on the outer one with the inner one near
+            between = outer >= _MIN_IN or (abs(outer) <= _ON_OUTER and inner >= -_MAX_IN)
+            if not (inner <= -_MIN_OFF and between):
+                continue
+            if deep is None:  # read once, for the first side that gets this far
+                deep = side_profiles(gray, ci, lens, _DEEP_BINS)
+            if _rough_face(deep, int(k), inner, min(abs(c1), abs(c2))):
+                continue
+            # inner's standard error: the normal matrix scaled by the pixels' scatter
+            # about the fit (within the bins and the bins' about the model)
+            j = 4 if d1 <= d2 else 6
+            var_px = (float(cost2[b]) + within[k]) / max(float(cnt[k].sum()) - 7.0, 1.0)
+            try:
+                var = float(np.linalg.inv(A2[b])[j, j]) * var_px
+            except np.linalg.LinAlgError:
+                var = math.inf
+            bands.append(Band(int(k), float(inner), float(outer), float(share), gain,
+                              math.sqrt(max(var, 0.0))))
+        return bands, twice
+
+    bands, twice = examine(np.flatnonzero(usable))
+    # a band along opposite sides lies inside the face (a plate, a chamfer all round): left
+    # alone whether or not the found side passed as beside it there too (a dark plate 4 px
+    # inside both long sides: the found sides 0.45 and 0.53 px outside the outer steps, one
+    # within _ON_OUTER and one not, and the one moved 4.45 px in). The opposite side is
+    # fitted with two steps here if the screen above left it out (a plate all round
+    # misfits every side alike: one 2 px inside was cut off along one side, 2 px)
+    facing = np.array(sorted({(b.side + 2) % 4 for b in bands}), int)
+    facing = facing[usable_any[facing] & ~usable[facing]] if facing.size else facing
+    if facing.size:
+        twice |= examine(facing)[1]
+    if any((b.side + 2) % 4 in twice for b in bands):
         return []
     return bands

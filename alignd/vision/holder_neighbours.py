@@ -43,9 +43,11 @@ REACH = 14.0  # px either side of the found side: the profiles :func:`neighbour_
 # px of one of them, the other at least _MIN_SEP px and _RESOLVED blurs from it (a
 # plateau between them) and within _FAR px of the side (beyond, no window reaches it), its
 # height at least _MIN_SHARE of the side's step, and the profile beyond it within _FLAT of
-# that height of the model (rms) over at least _BEYOND px (a texture line is not a step)
+# that height of the model (rms) over at least _BEYOND px (a texture line is not a step).
+# _ON: a plate 4 px inside a side pulls the side found first by up to 1.9 px (through a
+# distorting lens, off its centre; 1.5 px missed it and left the holder 1.9 px off)
 _MIN_GAIN = 4.0
-_ON = 1.5
+_ON = 2.5
 _MIN_SEP = 1.5
 _RESOLVED = 1.8
 _FAR = 13.0
@@ -60,8 +62,8 @@ _SHARP, _SHARP_PX = 1.5, 0.3
 _ITERATIONS = 15  # Levenberg-Marquardt steps of the one-step and one-blur fits
 _BLURS = (0.7, 1.4)  # the grid's blurs (px)
 _SOFT = 3.0  # a far step that fits better this many times softer is a penumbra
-_GRID_GAIN = 1.5  # the grid's start must fit this many times better than one step
-_D1 = np.arange(-1.5, 1.51, 0.5)  # the side's own step (px from the found side)
+_GRID_GAIN = 1.1  # the grid's start must fit this many times better than one step
+_D1 = np.arange(-_ON, _ON + 0.01, 0.5)  # the side's own step (px from the found side)
 _D2 = np.arange(-REACH + 1.0, REACH - 0.99, 0.5)  # the other one's
 _TABLE_T = np.arange(-2.0 * REACH - 2.0, 2.0 * REACH + 2.01, 0.02)  # see _grid_start
 
@@ -158,10 +160,11 @@ def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = N
     keep = (cost1 >= _MIN_GAIN * nbins * np.maximum(var, 1e-6)) & (
         cost1 >= (_MISFIT * P1[:, 3]) ** 2 * n_px)
     todo, cost1 = todo[keep], cost1[keep]
-    # the grid's start, unless it gains less than _GRID_GAIN on one step (the corpus'
-    # sides screened in: 22 of 31; plates 2-6 px in: 1.7 and more) or its far step fits
-    # better _SOFT times softer (a penumbra, which the profile fit's tails model): the
-    # fits below cost 3-8 ms
+    # the grid's start, unless it gains less than _GRID_GAIN on one step (plates 3-6 px
+    # in: 1.7 and more; a plate 2 px in with the side found between its steps, where the
+    # grid's places are too coarse: 1.1-1.3, and the fit below gains 15) or its far step
+    # fits better _SOFT times softer (a penumbra, which the profile fit's tails model):
+    # the fits below cost 3-8 ms
     grids = [_grid_start(x[k], m[k], cnt[k], foot[k]) for k in todo]
     starts = [gr[0] if gr is not None and c1 >= _GRID_GAIN * gr[1]
               and not _soft_far(x[k], m[k], cnt[k], foot[k], gr[0]) else None

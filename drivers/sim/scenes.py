@@ -604,18 +604,22 @@ def hard_shadow_scene(offset_px: float, angle_deg: float, seed: int = 0,
 
 
 def plate_scene(insets_px: tuple[float, float, float, float], angle_deg: float,
-                levels: tuple[float, float, float] = (60.0, 170.0, 230.0), seed: int = 0
+                levels: tuple[float, float, float] = (60.0, 170.0, 230.0), seed: int = 0,
+                k1: float = 0.0, centre_px: tuple[float, float] = (640.4, 360.1)
                 ) -> tuple[np.ndarray, np.ndarray]:
     """A 303 x 193 px holder in a 1280 x 720 frame carrying a sample plate whose edges lie
     ``insets_px`` inside the holder's (the sides facing -v, +u, +v, -u of the holder's
     frame, u along its long side at ``angle_deg``); ``levels``: floor, holder, plate DN;
     blur 0.8 px, noise 1 DN. A plate a few px inside a side puts a second step in that
     side's edge windows (docs/vision.md, "A second step beside a side"). Not in the random
-    corpus, whose labels keep 18 px clear. The 8-bit frame and the holder's corners."""
+    corpus, whose labels keep 18 px clear. ``k1``: radial lens distortion (focal 1000 px,
+    principal point the frame's centre: ``alignd.vision.lens.Lens(1000, (640, 360), k1)``);
+    ``centre_px``: the holder's centre in the ideal image. The 8-bit frame and the
+    holder's corners (in the frame)."""
     w, h = 1280, 720
-    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), k1)
     floor, body, plate = levels
-    ctr = np.array([640.4, 360.1])
+    ctr = np.asarray(centre_px, float)
     t = math.radians(angle_deg)
     u, v = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
     a, b, c, d = insets_px
@@ -628,7 +632,7 @@ def plate_scene(insets_px: tuple[float, float, float, float], angle_deg: float,
     img += (plate - img) * coverage(Polygon(inner), ras, box)
     img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8)
     noise = np.random.default_rng(seed).normal(0, 1.0, img.shape)
-    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
+    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), ras.distort(held)
 
 
 def _holder_furniture(rng: np.random.Generator, img: np.ndarray, holder: np.ndarray,
