@@ -603,14 +603,15 @@ def top_targets(ts: dict[str, float]) -> list[Target]:
 HARD_SHADOW_LEVELS = {"210/128/85 DN": (210.0, 128.0, 85.0), "200/60/30 DN": (200.0, 60.0, 30.0)}
 
 
-def _drawn(label: str, frames: Iterable[tuple[np.ndarray, np.ndarray]]) -> Target:
-    """One row for drawn frames (image, holder corners) not in the corpus: wrong (a
+def _drawn(label: str, frames: Iterable[tuple[np.ndarray, np.ndarray, Lens | None]]
+           ) -> Target:
+    """One row for drawn frames (image, holder corners, lens) not in the corpus: wrong (a
     corner more than 1 px off), within 0.3 px, refused."""
     wrong = right = refused = n = 0
-    for img, held in frames:
+    for img, held, lens in frames:
         n += 1
         try:
-            det = track_holder(img, expected_size_px=(303.2, 193.0))
+            det = track_holder(img, expected_size_px=(303.2, 193.0), lens=lens)
         except VisionError:
             refused += 1
             continue
@@ -637,7 +638,7 @@ def hard_shadows(quick: bool) -> list[Target]:
     angles = (-16.8, 20.0) if quick else (-16.8, 20.0, 3.0, 45.0, 0.0)
     seeds = (0,) if quick else (0, 1)
     return [_drawn(f"hard shadow {label}",
-                   (hard_shadow_scene(off, ang, seed, levels) for off in offsets
+                   ((*hard_shadow_scene(off, ang, seed, levels), None) for off in offsets
                     for ang in angles for seed in seeds))
             for label, levels in HARD_SHADOW_LEVELS.items()]
 
@@ -645,20 +646,31 @@ def hard_shadows(quick: bool) -> list[Target]:
 # floor, holder, plate DN
 PLATE_LEVELS = {"lighter plate 60/170/230 DN": (60.0, 170.0, 230.0),
                 "plate between 200/60/130 DN": (200.0, 60.0, 130.0),
-                "darker plate 60/170/115 DN": (60.0, 170.0, 115.0)}
+                "darker plate 60/170/115 DN": (60.0, 170.0, 115.0),
+                "darker plate, dark holder 200/60/20 DN": (200.0, 60.0, 20.0)}
+PLATE_LENS_K1 = (-0.12, 0.12)  # the plates seen through a distorting lens, off its centre
 
 
 def plates(quick: bool) -> list[Target]:
     """A sample plate on the holder with its edges 2-6 px inside the holder's
     (:func:`plate_scene`, not in the corpus, whose labels keep 18 px clear): its edge
     lies in the sides' windows (docs/vision.md, "A second step beside a side"). Per set
-    of levels: wrong, within 0.3 px, refused."""
+    of levels: wrong, within 0.3 px, refused; and the lighter plates through a lens
+    (radial k1 of either sign, the holder 250 px off the lens's centre, where its sides
+    curve)."""
     insets = ((3.0, 3.0, 3.0, 3.0), (4.0, 20.0, 4.0, 20.0)) if quick else (
         (3.0, 3.0, 3.0, 3.0), (6.0, 6.0, 6.0, 6.0), (2.0, 10.0, 2.0, 10.0),
         (4.0, 20.0, 4.0, 20.0))
     angles = (7.0, 0.0) if quick else (-16.8, 7.0, 30.0, 0.0)
-    return [_drawn(label, (plate_scene(ins, ang, levels) for ins in insets for ang in angles))
+    rows = [_drawn(label, ((*plate_scene(ins, ang, levels), None) for ins in insets
+                           for ang in angles))
             for label, levels in PLATE_LEVELS.items()]
+    lighter = next(iter(PLATE_LEVELS.values()))
+    rows.append(_drawn("lighter plate through a lens, k1 -0.12 / +0.12", (
+        (*plate_scene(ins, ang, lighter, k1=k1, centre_px=(420.0, 230.0)),
+         Lens(1000.0, (640.0, 360.0), k1)) for k1 in PLATE_LENS_K1 for ins in insets
+        for ang in angles)))
+    return rows
 
 
 def print_side(c_side: int, seed: int, frames: int = TILT_FRAMES,
