@@ -29,14 +29,19 @@ class Lens:
             return p.reshape(-1, 2).copy()
         cx, cy = self.principal_px
         d = np.stack([(p[:, 0, 0] - cx) / self.focal_px, (p[:, 0, 1] - cy) / self.focal_px])
-        n = d
-        for _ in range(20):  # fixed point of x_d = x_n (1 + k1 r_n^2); converges fast
-            s = 1.0 + self.k1 * (n[0] * n[0] + n[1] * n[1])
-            new = d / s
-            if (new == n).all():
-                break  # reached: every further step gives the same
-            n = new
-        return np.column_stack([cx + self.focal_px * n[0], cy + self.focal_px * n[1]])
+        # the ideal radius r of r_d = r (1 + k1 r^2), by Newton's method from r_d (to
+        # rounding in 3-5 steps; the fixed point x_n = x_d / (1 + k1 r_n^2) took 12-20)
+        rd = np.sqrt(d[0] * d[0] + d[1] * d[1])
+        r = rd.copy()
+        for _ in range(12):
+            r2 = r * r
+            step = (r * (1.0 + self.k1 * r2) - rd) / (1.0 + 3.0 * self.k1 * r2)
+            r -= step
+            if float(np.max(np.abs(step))) <= 1e-15:
+                break
+        scale = np.divide(r, rd, out=np.ones_like(rd), where=rd > 0)
+        return np.column_stack([cx + self.focal_px * d[0] * scale,
+                                cy + self.focal_px * d[1] * scale])
 
     def distort(self, pts: np.ndarray) -> np.ndarray:
         """Ideal pinhole pixels (N, 2) -> frame pixels."""
