@@ -652,15 +652,15 @@ PLATE_LENS_K1 = (-0.12, 0.12)  # the plates seen through a distorting lens, off 
 
 
 def plates(quick: bool) -> list[Target]:
-    """A sample plate on the holder with its edges 2-6 px inside the holder's
-    (:func:`plate_scene`, not in the corpus, whose labels keep 18 px clear): its edge
-    lies in the sides' windows (docs/vision.md, "A second step beside a side"). Per set
-    of levels: wrong, within 0.3 px, refused; and the lighter plates through a lens
-    (radial k1 of either sign, the holder 250 px off the lens's centre, where its sides
-    curve)."""
+    """A sample plate on the holder with its edges 2-6 px inside the holder's, or 2 px
+    inside two adjacent sides and 12 px inside the others (:func:`plate_scene`, not in
+    the corpus, whose labels keep 18 px clear): its edge lies in the sides' windows
+    (docs/vision.md, "A second step beside a side"). Per set of levels: wrong, within
+    0.3 px, refused; and the lighter plates through a lens (radial k1 of either sign,
+    the holder 250 px off the lens's centre, where its sides curve)."""
     insets = ((3.0, 3.0, 3.0, 3.0), (4.0, 20.0, 4.0, 20.0)) if quick else (
         (3.0, 3.0, 3.0, 3.0), (6.0, 6.0, 6.0, 6.0), (2.0, 10.0, 2.0, 10.0),
-        (4.0, 20.0, 4.0, 20.0))
+        (4.0, 20.0, 4.0, 20.0), (2.0, 2.0, 12.0, 12.0))
     angles = (7.0, 0.0) if quick else (-16.8, 7.0, 30.0, 0.0)
     rows = [_drawn(label, ((*plate_scene(ins, ang, levels), None) for ins in insets
                            for ang in angles))

@@ -45,7 +45,14 @@ PLATES = [((3.0, 3.0, 3.0, 3.0), 7.0, (60.0, 170.0, 230.0)),
           # a plate 2 px inside every side, lighter than a light holder: the sides found
           # first lie between the steps (0.6-0.9 px off), where the start's coarse grid
           # gained only 1.1-1.3 times on one step and was dropped
-          ((2.0, 2.0, 2.0, 2.0), 7.0, (60.0, 170.0, 230.0))]
+          ((2.0, 2.0, 2.0, 2.0), 7.0, (60.0, 170.0, 230.0)),
+          # a plate 2 px inside two adjacent sides and 12 px inside the others, the same
+          # way as the holder (lighter on a light one, darker on a dark one): the two
+          # steps 2 px apart were taken for a hard shadow's band and the sides moved in
+          # onto the plate's edge (2.8 px off); the face just inside the opposite sides
+          # is at the band's level (a plate's rim), not the plate's
+          ((2.0, 2.0, 12.0, 12.0), 7.0, (60.0, 170.0, 230.0)),
+          ((2.0, 2.0, 12.0, 12.0), 30.0, (200.0, 60.0, 20.0))]
 
 
 @pytest.mark.parametrize(("insets", "angle", "levels"), PLATES)
@@ -120,6 +127,34 @@ def test_a_light_holders_hard_shadow_beside_it() -> None:
         assert det.ok, det.reason
         assert det.neighbour_sides == 2
         assert _err(det, held) <= 0.06
+
+
+@pytest.mark.parametrize("label", [40.0, 128.0])
+def test_a_hard_shadow_beside_a_holder_with_a_label_near_its_other_sides(label) -> None:
+    """A dark holder's hard shadow 3 px wide beyond two sides, and a label 12 px inside
+    the other two (darker than the face, or at the shadow's level): the face just inside
+    those sides is the holder's, not the band's level, so the band is still a shadow and
+    the sides beside it are moved in to its inner step (a plate's rim would be left)."""
+    w, h = 1280, 720
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    ctr, angle = np.array([640.4, 360.1]), 20.0
+    held = rectangle(ctr, 303.2, 193.0, angle)
+    t = math.radians(angle)
+    u, v = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
+    # the shadow falls beyond the sides facing -v and +u; the label is 12 px inside the
+    # sides facing +v and -u and 30 px inside the shadowed ones
+    tag = rectangle(ctr - 9.0 * u + 9.0 * v, 303.2 - 42.0, 193.0 - 42.0, angle)
+    box = (0, 0, w, h)
+    img = np.full((h, w), 210.0)
+    img += (128.0 - img) * coverage(Polygon(held + np.array([3.0, -0.73])), ras, box)
+    img += (85.0 - img) * coverage(Polygon(held), ras, box)
+    img += (label - img) * coverage(Polygon(tag), ras, box)
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.49)
+    img = np.clip(np.rint(img + np.random.default_rng(0).normal(0, 0.8, img.shape)), 0, 255)
+    det = track_holder(img.astype(np.uint8), expected_size_px=_SIZE)
+    assert det.ok, det.reason
+    assert det.banded_sides == 2
+    assert _err(det, held) <= 0.05
 
 
 def test_without_neighbours_keeps_the_sides_own_step() -> None:

@@ -23,11 +23,12 @@ inner step: a shadow, a strip or a wall lies outside the top face. (A band insid
 along one side reads the same way, and is cut off: a chamfer lit apart, a label flush with
 the edge. Its inner edge is then a rigid edge of the holder all the same, while a shadow's
 outer edge moves with the light. A band along opposite sides is taken for such and left
-alone, see :func:`side_bands`.) A side along the pixel rows samples its profile once a
-pixel, and there a blur not quite Gaussian fits two steps about 1 px apart far better than
-one: such a side must also misfit one step by more than a blur's shape can. A band narrower
-than about 1 px is not resolved from the edge's own blur and still moves the side by up to
-half a pixel.
+alone, see :func:`side_bands`; so is a band at the level of the face just inside the
+opposite side: the holder's face round a sample plate, :func:`plate_rim`.) A side along
+the pixel rows samples its profile once a pixel, and there a blur not quite Gaussian fits
+two steps about 1 px apart far better than one: such a side must also misfit one step by
+more than a blur's shape can. A band narrower than about 1 px is not resolved from the
+edge's own blur and still moves the side by up to half a pixel.
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ from alignd.vision.holder_steps import side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import step_response
 
-__all__ = ["REACH", "Band", "SideProfiles", "fit_steps", "profile_bins", "read_sides", "side_bands",
-           "side_profiles", "steps_model"]
+__all__ = ["REACH", "Band", "SideProfiles", "band_levels", "fit_steps", "plate_rim",
+           "profile_bins", "read_sides", "side_bands", "side_profiles", "steps_model"]
 
 REACH = 8.0  # px either side of the found side: the profiles :func:`side_bands` reads
 _BIN = 0.2  # px: the pixels are binned by their distance to the side
@@ -86,6 +87,7 @@ class Band:
     share: float  # the smaller step over both
     gain: float  # the one step's residual sum of squares over the two steps'
     sigma_px: float  # standard error of inner_px (from the fit's residuals)
+    levels: tuple[float, float] = (math.nan, math.nan)  # DN: the band's, the face's beyond it
 
 
 @dataclass(frozen=True)
@@ -294,6 +296,37 @@ def _rough_face(deep: SideProfiles, k: int, inner: float, step: float) -> bool:
     return rms > _FLAT * step
 
 
+# a band along a side may be the holder's own face round a sample plate whose edge lies a
+# few px inside that side and farther than this check reaches inside the opposite one (2
+# and 12 px: the side was moved onto the plate's edge, 2.8 px off). Then the face just
+# inside the opposite side (_RIM_IN px in) is at the band's level, where beside a hard
+# shadow it is the face's beyond the band's inner step (a band is the floor in shade)
+_RIM_IN = (-6.0, -3.0)
+_RIM_NEAR = 0.25  # of the two levels' difference
+_RIM_DEEP = 4.5  # px beyond the inner step: where the face's level is taken
+
+
+def band_levels(a: float, g: float, inner: float, outer: float, c_inner: float
+                ) -> tuple[float, float]:
+    """The levels (DN) between two steps at ``inner`` < ``outer`` and beyond the inner one
+    of a profile a + g x + steps (:func:`steps_model`; ``c_inner`` the inner step's
+    height, going outward)."""
+    return a + g * (inner + outer) / 2 + c_inner, a + g * (inner - _RIM_DEEP)
+
+
+def plate_rim(prof: SideProfiles, k: int, levels: tuple[float, float]) -> bool:
+    """Whether a band along side ``k`` (``levels``: its own and the face's beyond it, DN)
+    is the holder's face round a plate: the level just inside the opposite side is the
+    band's (within ``_RIM_NEAR`` of the levels' difference), not the face's."""
+    o = (k + 2) % 4
+    use = (prof.cnt[o] > 0) & (prof.x[o] >= _RIM_IN[0]) & (prof.x[o] <= _RIM_IN[1])
+    if not use.any():
+        return False
+    near = float(np.average(prof.m[o, use], weights=prof.cnt[o, use]))
+    band, beyond = levels
+    return abs(near - band) <= _RIM_NEAR * abs(beyond - band)
+
+
 _SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, ...
 _SPLITS = (0.0, 0.5, 1.0)  # ... the one step's place at the inner, middle, outer one
 
@@ -304,7 +337,8 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
     frame with ``lens`` distortion, measured in the ideal image) found between two steps
     the same way or on the outer one, outside the inner one (module docstring); [] when
     none is, or when the side opposite one that is steps twice the same way as well,
-    wherever its found side lies (a band all round lies inside the face, not beside it).
+    wherever its found side lies (a band all round lies inside the face, not beside it),
+    or the face just inside it is at the band's level (:func:`plate_rim`).
     ``profiles``: these sides' profiles already read (:func:`read_sides`, a reach of
     ``REACH`` or more)."""
     c = np.asarray(corners, float)
@@ -385,7 +419,8 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
             except np.linalg.LinAlgError:
                 var = math.inf
             bands.append(Band(int(k), float(inner), float(outer), float(share), gain,
-                              math.sqrt(max(var, 0.0))))
+                              math.sqrt(max(var, 0.0)),
+                              band_levels(_a, _g, inner, outer, c1 if d1 <= d2 else c2)))
         return bands, twice
 
     bands, twice = examine(np.flatnonzero(usable))
@@ -400,5 +435,8 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
     if facing.size:
         twice |= examine(facing)[1]
     if any((b.side + 2) % 4 in twice for b in bands):
+        return []
+    # nor is a band at the level just inside the opposite side (a plate's rim, above)
+    if any(plate_rim(prof, b.side, b.levels) for b in bands):
         return []
     return bands

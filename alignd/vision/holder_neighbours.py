@@ -31,7 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from alignd.vision.holder_bands import SideProfiles, fit_steps, read_sides, steps_model
+from alignd.vision.holder_bands import (
+    SideProfiles,
+    band_levels,
+    fit_steps,
+    plate_rim,
+    read_sides,
+    steps_model,
+)
 from alignd.vision.holder_steps import side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import step_response
@@ -175,12 +182,12 @@ def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = N
     todo, cost1 = todo[have], cost1[have]
     fits = _two_steps(x[todo], m[todo], cnt[todo], foot[todo],
                       np.array([st for st in starts if st is not None]), cost1)
-    found = []
+    found, rims = [], set()
     for k, c1cost, fit in zip(todo, cost1, fits, strict=True):
         if fit is None:
             continue
         xk, mk, wk = x[k], m[k], cnt[k]
-        s1, c1, d1, c2, d2, s2 = fit[2:8]
+        a, g, s1, c1, d1, c2, d2, s2 = fit[:8]
         gain = float(c1cost / max(fit[8], 1e-12))
         if not (gain >= _MIN_GAIN and abs(d1) <= _ON and abs(d2) <= _FAR
                 and abs(d2 - d1) >= max(_MIN_SEP, _RESOLVED * max(s1, s2))
@@ -196,12 +203,17 @@ def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = N
             continue
         found.append(Neighbour(int(k), float(d2 - d1), float(d1), float(c2), float(s2), gain,
                                float(c1)))
+        if d2 < d1 and plate_rim(prof, int(k), band_levels(a, g, d2, d1, c2)):
+            rims.add(int(k))
     # a far step inside the side stepping its way is a band: the holder's edge is the inner
     # step (:mod:`alignd.vision.holder_bands`, taken on trust), unless the opposite side has
-    # one too (a band all round lies inside the face: a plate); removing it would leave
-    # the side on the outer one (a hard shadow's band 2-3 px wide: 2.1-3.1 px off)
+    # one too (a band all round lies inside the face: a plate) or the face just inside the
+    # opposite side is at the band's level (a plate's rim, :func:`plate_rim`); removing it
+    # would leave the side on the outer one (a hard shadow's band 2-3 px wide: 2.1-3.1 px
+    # off)
     banded = {n.side for n in found if n.at_px < 0 and n.step * n.own_step > 0}
-    found = [n for n in found if n.side not in banded or (n.side + 2) % 4 in banded]
+    found = [n for n in found
+             if n.side not in banded or (n.side + 2) % 4 in banded or n.side in rims]
     return found
 
 
