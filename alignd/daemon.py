@@ -862,7 +862,8 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
                   + ", ".join(f"{a.role} (address {a.address}, {a.stage or 'no stage'})"
                               for a in c.axes))
         for cam in cfg.cameras:
-            print(f"  camera {cam.role}: {cam.source}")
+            curve = "" if cam.gamma == 1.0 else f" (tone curve: gamma {cam.gamma:g}, undone)"
+            print(f"  camera {cam.role}: {cam.source}{curve}")
         return EXIT_OK
     if not args.config:
         parser.error("--config FILE is required (or --check-config FILE)")

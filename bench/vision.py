@@ -46,6 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from alignd.config import PrecheckConfig  # noqa: E402
 from alignd.errors import VisionError  # noqa: E402
+from alignd.vision.edges import linearise  # noqa: E402
 from alignd.vision.holder import measure_yaw, order_corners, track_holder  # noqa: E402
 from alignd.vision.lens import Lens  # noqa: E402
 from alignd.vision.rim import (  # noqa: E402
@@ -673,6 +674,46 @@ def plates(quick: bool) -> list[Target]:
     return rows
 
 
+GAMMA = 2.2  # a UVC camera's tone curve
+
+
+def gamma_frames(n: int, seed: int) -> list[Target]:
+    """The first ``n`` uncompressed 8-bit corpus scenes of ``seed``, their values encoded
+    as a camera with a tone curve of :data:`GAMMA` delivers them (webcams, UVC cameras),
+    measured as they are and with the curve undone (:func:`alignd.vision.linearise`,
+    what ``cameras[].gamma`` does): corner RMS against the same scenes' linear frames."""
+    rng = np.random.default_rng(seed)
+    lut = np.rint(255 * (np.arange(256) / 255) ** (1 / GAMMA)).astype(np.uint8)
+    err: dict[str, list[float]] = {"linear": [], "as is": [], "undone": []}
+    lost = i = 0
+    while len(err["linear"]) < 4 * n:
+        sc = random_top_scene(rng, TOP_CATEGORIES[i % len(TOP_CATEGORIES)])
+        i += 1
+        if sc.encoding.jpeg_quality is not None or sc.image.dtype != np.uint8:
+            continue
+        lens = Lens(sc.lens[0], sc.lens[1], sc.lens[2]) if sc.lens else None
+        truth = order_corners(sc.corners_px)
+        got = {}
+        for key, img in (("linear", sc.image), ("as is", lut[sc.image]),
+                         ("undone", linearise(lut[sc.image], GAMMA))):
+            try:
+                det = track_holder(img, expected_size_px=sc.expected_size_px, lens=lens)
+            except VisionError:
+                break
+            if not det.ok:
+                break
+            got[key] = np.linalg.norm(order_corners(det.corners_px, truth) - truth, axis=1)
+        if len(got) < 3:
+            lost += 1
+            continue
+        for key, e in got.items():
+            err[key].extend(e.tolist())
+    lin, raw, undone = _rms(err["linear"]), _rms(err["as is"]), _rms(err["undone"])
+    return [(f"top: gamma {GAMMA} camera, corner RMS as is / undone / linear frames (px; "
+             f"{n} scenes, {lost} lost)", f"{raw:.4f} / {undone:.4f} / {lin:.4f}",
+             "undone <= 1.1 x linear", undone <= 1.1 * lin)]
+
+
 def print_side(c_side: int, seed: int, frames: int = TILT_FRAMES,
                u_target: float | None = TILT_U_TARGET, max_frames: int = TILT_MAX_FRAMES,
                size_px: tuple[int, int] = FRAME) -> dict[str, float]:
@@ -837,6 +878,7 @@ def main(argv: list[str] | None = None) -> int:
         targets += top_targets(print_top(c_top, args.seed + 100, args.size))
         targets += hard_shadows(args.quick)
         targets += plates(args.quick)
+        targets += gamma_frames(6 if args.quick else 60, args.seed + 400)
     if "side" in want:
         u_target = args.tilt_u_target or None
         targets += side_targets(print_side(c_side, args.seed + 200, args.tilt_frames,

@@ -120,6 +120,12 @@ class CameraConfig(Strict):
     exposure: float | None = None
     pixel_size_um: float | None = Field(None, gt=0)
     settle_frames: int = Field(1, ge=0, description="frames discarded after a move")
+    gamma: float = Field(1.0, ge=1.0, le=3.0, description=(
+        "the camera's tone curve: a pixel's value is (light)^(1/gamma) of full scale. 1 = "
+        "linear (machine-vision cameras as delivered); about 2.2 for webcams and UVC "
+        "cameras, which encode sRGB-like. alignd undoes it before measuring edges: a gamma "
+        "frame read as linear put corners 0.3 px off (up to 1.7). A simulated camera "
+        "draws its frames with it"))
 
 
 class FaultConfig(Strict):

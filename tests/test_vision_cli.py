@@ -167,3 +167,22 @@ def test_unreadable_and_targetless_images_exit_2(images, capsys) -> None:
     assert cap.err.count("alignctl analyze: error:") == 3
     assert main(["analyze", "side", images["blank"]]) == 2
     assert main(["analyze", "rim", images["blank"]]) == 2
+
+
+def test_gamma_undoes_a_cameras_tone_curve(tmp_path, capsys) -> None:
+    """``--gamma``: a frame from a camera that encodes (light)^(1/2.2) is measured as
+    linear light; read as it is, its corners are tenths of a px off."""
+    w = posed_world(seed=1)
+    opts = RenderOptions(gamma=2.2, blur_sigma_px=1.2)
+    p = tmp_path / "top_gamma.png"
+    cv2.imwrite(str(p), render_top(w.top_scene(), w.top_camera, opts,
+                                   np.random.default_rng(3)))
+    truth = np.asarray(top_truth(w.top_scene(), w.top_camera, opts)["corners_px"])
+    off = {}
+    for gamma in ("1", "2.2"):
+        assert main(["analyze", "top", str(p), "--json", "--gamma", gamma]) == 0
+        got = np.asarray(_lines(capsys.readouterr().out)[0]["corners_px"])
+        off[gamma] = float(np.max(np.abs(got - truth)))
+    assert off["1"] > 0.15 and off["2.2"] < 0.03
+    assert main(["analyze", "top", str(p), "--gamma", "0.45"]) == 2
+    assert "--gamma 0.45: the camera's tone curve is within 1-3" in capsys.readouterr().err

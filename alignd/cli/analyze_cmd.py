@@ -68,9 +68,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="region of the pole (px; default: automatic)")
     g.add_argument("--sample-roi", metavar="X0,Y0,X1,Y1", type=_box,
                    help="region of the sample edge (px; default: automatic)")
+    p.add_argument("--gamma", type=float, default=None,
+                   help="the camera's tone curve, undone before measuring (cameras[].gamma: "
+                        "1 linear, about 2.2 for UVC cameras; default: the config's camera, "
+                        "else 1)")
     p.add_argument("--config", metavar="FILE",
-                   help="take the holder size, the top camera's pixel size and the side "
-                        "camera's regions from an alignd config (options given win)")
+                   help="take the holder size, the top camera's pixel size and gamma, and "
+                        "the side camera's regions and gamma from an alignd config (options "
+                        "given win)")
     g = p.add_argument_group("rim")
     g.add_argument("--radius-mm", type=float, default=150.0, help="rim radius (default 150)")
     g.add_argument("--height-mm", type=float, default=800.0,
@@ -98,7 +103,8 @@ def _box(text: str) -> tuple[int, int, int, int]:
 
 
 def _apply_config(args: argparse.Namespace) -> None:
-    """Fill unset options from ``--config`` (holder size, pixel size, side regions)."""
+    """Fill unset options from ``--config`` (holder size, pixel size, side regions, the
+    camera's gamma)."""
     if args.config:
         from alignd.config import load_config
         from alignd.procedures.tools import expected_holder_px
@@ -110,6 +116,12 @@ def _apply_config(args: argparse.Namespace) -> None:
             args.pixel_size_um = cam.pixel_size_um if cam is not None else None
         args.pole_roi = args.pole_roi or cfg.side_camera.pole_roi_px
         args.sample_roi = args.sample_roi or cfg.side_camera.sample_roi_px
+        seen_by = cfg.camera("side" if args.kind == "side" else "top")
+        if args.gamma is None and seen_by is not None:
+            args.gamma = seen_by.gamma
+    if args.gamma is not None and not (math.isfinite(args.gamma) and 1.0 <= args.gamma <= 3.0):
+        raise InputError(f"--gamma {args.gamma:g}: the camera's tone curve is within 1-3 (1: "
+                         "linear)")
     if args.holder_mm is not None and args.expected_size is None:
         if args.pixel_size_um is None:
             raise InputError("--holder-mm needs --pixel-size-um (or --config)")
@@ -140,6 +152,12 @@ def read_image(name: str) -> np.ndarray:
     return img
 
 
+def _linear(img: np.ndarray, args: argparse.Namespace) -> np.ndarray:
+    """``img`` with the camera's tone curve (``--gamma``) undone."""
+    from alignd.vision import linearise
+    return linearise(img, args.gamma if args.gamma is not None else 1.0)
+
+
 def _angle_from_name(name: str) -> float | None:
     m = _ANGLE_RE.findall(Path(name).stem)
     return float(m[-1]) if m else None
@@ -152,7 +170,7 @@ def _fmt(v: float, nd: int = 3) -> str:
 def _analyze_one(kind: str, name: str, args: argparse.Namespace,
                  prev: np.ndarray | None) -> tuple[dict[str, object], str, np.ndarray | None]:
     """JSON object, human line, and (top) the corners for the sweep; raises on failure."""
-    img = read_image(name)
+    img = _linear(read_image(name), args)
     if kind == "top":
         from alignd.vision.holder import measure_yaw, order_corners, track_holder
         from alignd.vision.lens import Lens
@@ -198,7 +216,7 @@ def _analyze_one(kind: str, name: str, args: argparse.Namespace,
 def _analyze_mean(kind: str, names: list[str], args: argparse.Namespace
                   ) -> tuple[dict[str, object], str]:
     """One measurement from all the frames (``--mean``): JSON object and human line."""
-    images = [read_image(n) for n in names]
+    images = [_linear(read_image(n), args) for n in names]
     if any(img.shape != images[0].shape for img in images):
         raise InputError("--mean: the frames differ in size (not one camera's view)")
     if kind == "side":

@@ -167,7 +167,8 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     (within ``SIZE_TOLERANCE``: a configured pixel size that is a few per cent off, as
     commissioning accepts, still finds the holder) and a target of another size is never
     taken for the holder; each frame's search is seeded with the previous frame's corners.
-    The side camera's regions of interest come from ``side_camera``.
+    The side camera's regions of interest come from ``side_camera``. Each camera's frames
+    have its tone curve undone first (``cameras[].gamma``, :func:`alignd.vision.linearise`).
     """
     from alignd import solve as solver
     from alignd.errors import StateError, VisionError
@@ -183,11 +184,19 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     # the previous frame's detection: its corners seed the search and, where the holder
     # has not moved, its sides' blur widths are reused (track_holder)
     last: list[vision.HolderDetection] = []
+    cams = {role: cfg.camera(role) if cfg is not None else None for role in ("top", "side")}
+    gammas = {role: cam.gamma if cam is not None else 1.0 for role, cam in cams.items()}
+
+    def top(frame: Frame) -> np.ndarray:
+        return vision.linearise(frame.gray, gammas["top"])
+
+    def seen(frame: Frame) -> np.ndarray:
+        return vision.linearise(frame.gray, gammas["side"])
 
     def track(frame: Frame) -> Corners:
         hint = last[0] if last else None
         try:
-            det = vision.track_holder(frame.gray, expected_size_px=expected, hint=hint,
+            det = vision.track_holder(top(frame), expected_size_px=expected, hint=hint,
                                       size_tolerance=SIZE_TOLERANCE)
         except VisionError as exc:
             return Corners(np.full((4, 2), np.nan), False, 0.0, str(exc))
@@ -210,30 +219,30 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
         return solver.solve_centre(sweep, method="auto")
 
     def tilt(frame: Frame) -> float:
-        return float(vision.measure_tilt(frame.gray, pole_roi_px=pole_roi,
+        return float(vision.measure_tilt(seen(frame), pole_roi_px=pole_roi,
                                   sample_roi_px=sample_roi).tilt_deg)
 
     pc = cfg.procedure.precheck if cfg is not None else None
 
     def tilt_frames(frames: list[Frame], more: MoreFrames | None = None) -> TiltReading:
-        grab = None if more is None else (lambda k: [f.gray for f in more(k)])
+        grab = None if more is None else (lambda k: [seen(f) for f in more(k)])
         av = vision.measure_tilt_frames(
-            [f.gray for f in frames], pole_roi_px=pole_roi, sample_roi_px=sample_roi,
+            [seen(f) for f in frames], pole_roi_px=pole_roi, sample_roi_px=sample_roi,
             more=grab, u_target_deg=pc.tilt_u_target_deg if pc else None,
             max_frames=pc.tilt_max_frames if pc else None)
         return TiltReading(av.tilt_deg, av.u_deg, av.n, av.stop)
 
     def eccentricity(frame: Frame) -> float:
-        return float(vision.fit_rim(frame.gray).eccentricity)
+        return float(vision.fit_rim(top(frame)).eccentricity)
 
     def rim(frames: list[Frame], radius_mm: float | None, height_mm: float | None) -> RimInfo:
-        res = vision.fit_rim_frames([f.gray for f in frames], radius_mm, height_mm)
+        res = vision.fit_rim_frames([top(f) for f in frames], radius_mm, height_mm)
         z, u = float(res.camera_zenith_deg), float(res.eccentricity_std)
         return RimInfo((float(res.center_px[0]), float(res.center_px[1])),
                        float(res.eccentricity), z if z == z else None, u if u == u else None)
 
     def side(frame: Frame) -> SideInfo:
-        res = vision.measure_tilt(frame.gray, pole_roi_px=pole_roi,
+        res = vision.measure_tilt(seen(frame), pole_roi_px=pole_roi,
                                   sample_roi_px=sample_roi)
         xs = [e.x_mid_px for e in res.sample_edges] or [float("nan")]
         xp = [e.x_mid_px for e in res.pole_edges] or [float("nan")]

@@ -8,9 +8,12 @@
 - :func:`fit_rim`: turntable rim ellipse, eccentricity and camera zenith (eq. 3.7);
   :func:`fit_rim_frames`: the same on the mean of several frames (the pre-check);
   :class:`PlaneRectifier`: image points rectified to the turntable plane.
+- :func:`linearise`: a camera's tone curve (its config's ``gamma``) undone, before any of
+  the above.
 - :mod:`alignd.vision.overlay`: report drawings.
 """
 
+from alignd.vision.edges import linearise
 from alignd.vision.holder import (
     HolderDetection,
     YawMeasurement,
@@ -47,6 +50,7 @@ __all__ = [
     "eccentricity_from_zenith",
     "fit_rim",
     "fit_rim_frames",
+    "linearise",
     "measure_tilt",
     "measure_tilt_frames",
     "measure_yaw",

@@ -27,8 +27,8 @@ from alignd.errors import VisionError
 __all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
            "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
            "coarse_edges_many", "edge_points", "edge_points_many", "edge_rows", "fit_line",
-           "intersect", "residual_correlation", "segment_median", "sensor_full_scale",
-           "xy_columns"]
+           "intersect", "linearise", "residual_correlation", "segment_median",
+           "sensor_full_scale", "xy_columns"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -44,6 +44,31 @@ def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
         # 8-bit DN of the sensor's own full scale so thresholds mean the same everywhere
         return img.astype(np.float32) * np.float32(255.0 / sensor_full_scale(img))
     return img.astype(np.float32)
+
+
+def linearise(image: np.ndarray, gamma: float) -> np.ndarray:
+    """``image`` with a camera's tone curve undone: a value v of full scale F (8-bit, the
+    sensor's bits in 16-bit words, or float in 8-bit DN) becomes 255 (v / F)^gamma, float32
+    in 8-bit DN of light; ``gamma`` 1 returns ``image`` itself.
+
+    Every edge model here takes a pixel's value to be proportional to the light on it (a
+    blurred step's profile is point-symmetric about the edge). A camera that encodes its
+    values as (light)^(1/gamma), as webcams and UVC cameras do (about 2.2), bends the
+    profile: corners read 0.3 px off (RMS; up to 1.7 px) on the corpus's frames drawn so,
+    0.034 px once undone."""
+    if gamma == 1.0:
+        return image
+    if not (math.isfinite(gamma) and 1.0 <= gamma <= 3.0):
+        raise VisionError(f"the camera's gamma must be within 1-3, got {gamma!r}")
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = as_gray(img)
+    if img.dtype == np.uint8:
+        lut = (255.0 * (np.arange(256) / 255.0) ** gamma).astype(np.float32)
+        return lut[img]
+    full = sensor_full_scale(img) if img.dtype == np.uint16 else 255.0
+    v = np.clip(img.astype(np.float32) / np.float32(full), 0.0, None)
+    return (np.float32(255.0) * v ** np.float32(gamma)).astype(np.float32)
 
 
 def sensor_full_scale(img: np.ndarray) -> float:

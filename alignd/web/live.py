@@ -132,15 +132,17 @@ class LiveView:
     def _draw_top(self, small: np.ndarray, full: np.ndarray, scale: float,
                   centre: Centre | None) -> dict[str, Any]:
         from alignd.procedures.sweep import holder_pose
-        from alignd.vision import track_holder
+        from alignd.vision import linearise, track_holder
 
         def pt(p: Any) -> tuple[int, int]:
             return round(float(p[0]) * scale), round(float(p[1]) * scale)
 
         info: dict[str, Any] = {"holder": None, "centre_px": None, "centre_run": None}
         gray = full if full.ndim == 2 else cv2.cvtColor(full, cv2.COLOR_BGR2GRAY)
+        cam = self.source.cfg.camera("top")
         try:
-            det = track_holder(gray, hint=self._hint)
+            det = track_holder(linearise(gray, cam.gamma if cam is not None else 1.0),
+                               hint=self._hint)
             corners = np.asarray(det.corners_px, float).reshape(4, 2)
             if not (det.ok and np.all(np.isfinite(corners))):
                 raise ValueError(getattr(det, "reason", "") or "fit failed")

@@ -248,7 +248,8 @@ def build_direct_axes(controllers: list[ControllerConfig], cameras: list[CameraC
 
             cams[cc.role] = SimCamera(world, cc.role, opts=render_opts,
                                       seed=cam_seed + (cc.role == "side"), clock=cam_clock,
-                                      exposure_s=exposure_s if cc.role == "top" else 0.0)
+                                      exposure_s=exposure_s if cc.role == "top" else 0.0,
+                                      gamma=cc.gamma)
     return DirectParts(axes, sim_axes, world, cams, clock)
 
 

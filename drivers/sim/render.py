@@ -87,6 +87,9 @@ class RenderOptions:
     read_noise_dn: float = 2.0
     electrons_per_dn: float = 0.0  # > 0 adds shot noise with variance signal / electrons_per_dn
     quantize: bool = True
+    # the camera's tone curve: out = 255 (light / 255)^(1 / gamma), after the noise (1 =
+    # linear; UVC cameras encode about 2.2)
+    gamma: float = 1.0
     blur_sigma_px: float = 0.6  # defocus, Gaussian sigma; 0 = sharp
     # illumination
     gradient: tuple[float, float] = (0.0, 0.0)  # relative light change across width, height
@@ -375,7 +378,8 @@ def finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
 
 def _finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
             ) -> np.ndarray:
-    """Illumination, blur, noise and quantisation, applied in place where possible."""
+    """Illumination, blur, noise, the tone curve and quantisation, applied in place where
+    possible."""
     h, w = img.shape
     gx, gy = opts.gradient
     if gx or gy:
@@ -405,6 +409,10 @@ def _finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | Non
         else:
             noise *= np.float32(opts.read_noise_dn)
         img += noise
+    if opts.gamma != 1.0:
+        np.clip(img, 0, None, out=img)
+        img = (np.float32(255.0) * (img / np.float32(255.0)) ** np.float32(1.0 / opts.gamma)
+               ).astype(np.float32)
     if opts.quantize:
         np.rint(img, out=img)
         np.clip(img, 0, 255, out=img)

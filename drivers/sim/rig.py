@@ -134,7 +134,9 @@ class SimRig:
     def camera(self, role: Literal["top", "side"]) -> SimCamera:
         from drivers.sim.sim_camera import SimCamera  # the renderer is only loaded when used
 
-        return SimCamera(self.world, role, seed=self._camera_seed + (role == "side"))
+        cc = self.camera_configs.get(role)
+        return SimCamera(self.world, role, seed=self._camera_seed + (role == "side"),
+                         gamma=cc.gamma if cc is not None else 1.0)
 
     def truth(self) -> dict[str, object]:
         """Ground truth from the simulator (never read by the alignment loop)."""

@@ -28,13 +28,14 @@ class SimCamera(Camera):
     top view is rendered at sub-exposure instants along the way and averaged, as many as
     keep the fastest corner's steps under ``BLUR_STEP_PX``). The frame's timestamp is the
     middle of the exposure, on ``clock`` (the rig's: a manual clock for the direct rig,
-    the machine's monotonic clock otherwise).
+    the machine's monotonic clock otherwise). ``gamma``: the camera's tone curve
+    (:attr:`drivers.sim.render.RenderOptions.gamma`), as a camera config's ``gamma`` says.
     """
 
     def __init__(self, world: World, role: Literal["top", "side"], *,
                  opts: render.RenderOptions | None = None, seed: int = 0,
                  lock: threading.Lock | None = None, clock: Clock | None = None,
-                 exposure_s: float = 0.0) -> None:
+                 exposure_s: float = 0.0, gamma: float = 1.0) -> None:
         super().__init__(f"{role}-camera", f"sim:{role}")
         self.world = world
         self.role = role
@@ -42,7 +43,8 @@ class SimCamera(Camera):
             opts = render.RenderOptions(read_noise_dn=world.cfg.noise_dn, gradient=(0.08, 0.04))
             if world.cfg.holder_dn is not None:
                 opts = dataclasses.replace(opts, holder_dn=world.cfg.holder_dn)
-        self.opts = opts
+        # the camera's tone curve (the camera config's gamma) over the options' own
+        self.opts = opts if gamma == 1.0 else dataclasses.replace(opts, gamma=gamma)
         self.rng = np.random.default_rng(seed)
         self.lock = lock or threading.Lock()
         self.clock = clock or SYSTEM_CLOCK
