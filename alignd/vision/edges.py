@@ -26,8 +26,8 @@ from alignd.errors import VisionError
 
 __all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
            "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
-           "coarse_edges_many", "edge_points", "edge_points_many", "edge_rows", "fit_line",
-           "intersect", "linearise", "residual_correlation", "segment_median",
+           "coarse_edges_many", "despeckle", "edge_points", "edge_points_many", "edge_rows",
+           "fit_line", "intersect", "linearise", "residual_correlation", "segment_median",
            "sensor_full_scale", "xy_columns"]
 
 
@@ -44,6 +44,48 @@ def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
         # 8-bit DN of the sensor's own full scale so thresholds mean the same everywhere
         return img.astype(np.float32) * np.float32(255.0 / sensor_full_scale(img))
     return img.astype(np.float32)
+
+
+SPECK_DN = 20.0  # a pixel this far (8-bit DN) above all 8 neighbours or below them is a speck
+_RING = np.ones((3, 3), np.uint8)
+_RING[1, 1] = 0
+
+
+def despeckle(gray: np.ndarray, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """``gray`` (2-D, 8-bit or float in 8-bit DN) with its specks replaced by the median of
+    their 8 neighbours (within ``box``, x0, y0, x1, y1 exclusive, if given); ``gray``
+    itself where it has none.
+
+    A speck is a pixel more than :data:`SPECK_DN` above the largest of its 8 neighbours
+    or below the smallest: a hot or dead sensor pixel (cameras without defect correction,
+    scientific and raw machine-vision ones) or a glint smaller than a pixel. No edge makes
+    one (a pixel on an edge has a brighter neighbour on one side and a darker one on the
+    other), nor does a line a pixel wide (its neighbours along it are like it), nor noise
+    of a few DN. Inside an edge's window a speck moves that column's crossing: 0.1 % of
+    the pixels hot and 0.1 % dead put the corpus's corners 0.052 px RMS off (0.56 at
+    most), against 0.031 without them."""
+    h, w = gray.shape
+    x0, y0, x1, y1 = (0, 0, w, h) if box is None else (
+        max(box[0], 0), max(box[1], 0), min(box[2], w), min(box[3], h))
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return gray
+    part = gray[y0:y1, x0:x1]
+    # how far each pixel stands above its neighbours' largest or below their smallest
+    # (OpenCV throughout: a frame without specks costs two 3 x 3 passes and a count)
+    out_of = cv2.max(cv2.subtract(part, cv2.dilate(part, _RING)),
+                     cv2.subtract(cv2.erode(part, _RING), part))
+    mask = cv2.threshold(out_of, SPECK_DN, 1, cv2.THRESH_BINARY)[1]
+    if cv2.countNonZero(mask) == 0:
+        return gray
+    ys, xs = np.nonzero(mask)
+    ys, xs = ys + y0, xs + x0
+    dy, dx = np.nonzero(_RING)
+    ny = np.clip(ys[:, None] + dy[None, :] - 1, 0, h - 1)
+    nx = np.clip(xs[:, None] + dx[None, :] - 1, 0, w - 1)
+    out = gray.copy()
+    med = np.median(gray[ny, nx], axis=1)
+    out[ys, xs] = (np.rint(med) if gray.dtype == np.uint8 else med).astype(gray.dtype)
+    return out
 
 
 def linearise(image: np.ndarray, gamma: float) -> np.ndarray:

@@ -43,6 +43,7 @@ from alignd.vision.edges import (
     as_gray,
     check_usable,
     coarse_edges_many,
+    despeckle,
     edge_points,
     edge_points_many,
     fit_line,
@@ -92,6 +93,9 @@ _ROUGH_SIDE_RATIO = 3.0
 # cannot be one flat face's (see _unlike_opposite_blurs)
 _BLUR_UNLIKE_PX, _BLUR_UNLIKE_RATIO = 1.2, 3.0
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
+# tracking despeckles the frame this far around the previous corners: the side search's 10
+# px, the edge windows and the profiles read beside a side (21.5 px in, 14 out) within it
+_SPECK_MARGIN_PX = 40
 # area corners this far (px) from the corners their windows were placed from: the windows
 # were misplaced, and a refined fit they disagree with is checked against them placed again
 _MISPLACED_PX = 1.0
@@ -296,7 +300,13 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     else:
         hint_arr = None if hint is None else np.asarray(hint, float)
     reasons: list[str] = []
+    full = gray  # the frame before its specks go (the full search despeckles all of it)
     if hint_arr is not None and hint_arr.shape == (4, 2) and np.all(np.isfinite(hint_arr)):
+        # hot and dead pixels (edges.despeckle; a copy only where there are any), around
+        # the previous corners: what tracking reads
+        lo, hi = np.floor(hint_arr.min(axis=0)), np.ceil(hint_arr.max(axis=0))
+        gray = despeckle(gray, (int(lo[0]) - _SPECK_MARGIN_PX, int(lo[1]) - _SPECK_MARGIN_PX,
+                                int(hi[0]) + _SPECK_MARGIN_PX, int(hi[1]) + _SPECK_MARGIN_PX))
         # tracking: the previous corners seed the fine windows (or, when the sides moved,
         # the +-10 px side search); if the holder is not there any more, fall back to a
         # full search
@@ -327,8 +337,9 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         except VisionError as exc:
             reasons.append(f"at the previous corners: {exc}")
     # (a frame the previous corners fit is usable; only a full search needs the check)
-    if gray is raw:  # the 8-bit frame itself: the search wants floats (any other frame
-        gray = as_gray(image, "top image")  # was converted above, once is enough)
+    gray = despeckle(full)
+    if gray.dtype == np.uint8:  # the 8-bit frame (or its despeckled copy): the search
+        gray = as_gray(gray, "top image")  # wants floats (any other was converted above)
     check_usable(gray, min_contrast, "top image")
     tried: list[np.ndarray] = []
     last: HolderDetection | None = None

@@ -38,7 +38,13 @@ import numpy as np
 from scipy.special import erfc
 
 from alignd.errors import VisionError
-from alignd.vision.edges import EdgePoints, area_crossings, as_gray, check_usable
+from alignd.vision.edges import (
+    EdgePoints,
+    area_crossings,
+    as_gray,
+    check_usable,
+    despeckle,
+)
 
 log = logging.getLogger(__name__)
 
@@ -859,7 +865,7 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
     uncertainty exceeds ``max_eccentricity_std`` (a third of the bound the caller needs:
     at small e, low contrast and high noise one frame cannot support a tight bound).
     """
-    gray = as_gray(image, "rim image")
+    gray = despeckle(as_gray(image, "rim image"))  # hot and dead pixels (edges.despeckle)
     check_usable(gray, min_contrast, "rim image")
     first: VisionError | None = None
     for k in _coarse_ellipses(gray, min_contrast):

@@ -32,6 +32,7 @@ from alignd.vision.edges import (
     as_gray,
     check_usable,
     coarse_edge,
+    despeckle,
     edge_points,
     fit_line,
 )
@@ -458,7 +459,8 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
     ``pole_x_px`` / ``sample_x_px`` (approximate x) pick among the edges instead. Raises
     VisionError when either target is missing or ambiguous.
     """
-    gray = as_gray(image, "side image")
+    # hot and dead pixels replaced (edges.despeckle); the searches below read this frame
+    image = gray = despeckle(as_gray(image, "side image"))
     h, w = gray.shape
     mode = "roi" if pole_roi_px is not None or sample_roi_px is not None else "auto"
     if pole_roi_px is not None:
@@ -602,7 +604,7 @@ def _tracked(image: np.ndarray, prev: SideMeasurement) -> SideMeasurement | None
     each started from where ``prev`` found it and fitted with the blur model chosen there
     (the search is skipped: the rig does not move between pre-check frames). None when an
     edge is not where it was."""
-    gray = as_gray(image, "side image")
+    gray = despeckle(as_gray(image, "side image"))
     others = [*prev.pole_edges, *prev.sample_edges]
     pole_roi, sample_roi = prev.rois
     out: list[list[SideEdge]] = [[], []]
