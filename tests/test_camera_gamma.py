@@ -12,11 +12,11 @@ import pytest
 from alignd.config import load_config
 from alignd.errors import VisionError
 from alignd.procedures.tools import default_tools
-from alignd.vision import linearise, order_corners, track_holder
+from alignd.vision import linearise, measure_tilt_frames, order_corners, track_holder
 from drivers.camera import Frame
 from drivers.config import SimWorldConfig
 from drivers.sim.render import RenderOptions, posed_world, render_top, top_truth
-from drivers.sim.scenes import TOP_CATEGORIES, random_top_scene
+from drivers.sim.scenes import TOP_CATEGORIES, random_side_scene, random_top_scene
 from drivers.sim.sim_camera import SimCamera
 from drivers.sim.world import World
 
@@ -119,3 +119,33 @@ def test_the_simulated_camera_draws_its_configs_gamma() -> None:
     level = float(lin.image[patch].mean())
     assert float(enc.image[patch].mean()) == pytest.approx(
         255 * (level / 255) ** (1 / 2.2), abs=1.0)
+
+
+def test_side_views_through_a_gamma_camera() -> None:
+    """The pre-check's tilt from 8 raw frames of side views drawn through a gamma 2.2
+    camera: with the curve undone it errs less than with the frames read as linear (over
+    40 views: 0.00057 against 0.00115 deg RMS)."""
+    rng = np.random.default_rng(2224)
+    err: dict[float, list[float]] = {1.0: [], 2.2: []}
+    for cat in ("full-height sample", "sample on holder", "uneven light") * 2:
+        sc = random_side_scene(rng, cat, frames=8, gamma=2.2)
+        true = sc.sample_angle_deg - sc.pole_angle_deg
+        for gamma in err:
+            got = measure_tilt_frames(list(sc.frames), pole_roi_px=sc.pole_roi_px,
+                                      sample_roi_px=sc.sample_roi_px, gamma=gamma)
+            assert got.jpeg_quality is None
+            err[gamma].append(got.tilt_deg - true)
+    rms = {g: float(np.sqrt(np.mean(np.square(e)))) for g, e in err.items()}
+    assert rms[2.2] < 0.8 * rms[1.0]
+
+
+def test_jpeg_side_frames_of_a_gamma_camera_are_measured_as_coded() -> None:
+    """JPEG codes what the camera's curve made: undoing the curve after the coding did
+    worse than leaving it (and lost the coding-bias step, which reads the coded values),
+    so coded frames are measured as they came, whatever the gamma."""
+    sc = random_side_scene(np.random.default_rng(1), "jpeg", frames=4, gamma=2.2)
+    kw = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
+    as_coded = measure_tilt_frames(list(sc.frames), **kw)
+    told = measure_tilt_frames(list(sc.frames), gamma=2.2, **kw)
+    assert told.jpeg_quality == as_coded.jpeg_quality == sc.encoding.jpeg_quality
+    assert told.tilt_deg == as_coded.tilt_deg

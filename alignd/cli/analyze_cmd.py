@@ -216,18 +216,19 @@ def _analyze_one(kind: str, name: str, args: argparse.Namespace,
 def _analyze_mean(kind: str, names: list[str], args: argparse.Namespace
                   ) -> tuple[dict[str, object], str]:
     """One measurement from all the frames (``--mean``): JSON object and human line."""
-    images = [_linear(read_image(n), args) for n in names]
+    images = [read_image(n) for n in names]
     if any(img.shape != images[0].shape for img in images):
         raise InputError("--mean: the frames differ in size (not one camera's view)")
-    if kind == "side":
+    if kind == "side":  # the frames as coded (the JPEG bias step reads it), gamma undone inside
         from alignd.vision.side import measure_tilt_frames
-        t = measure_tilt_frames(images, pole_roi_px=args.pole_roi, sample_roi_px=args.sample_roi)
+        t = measure_tilt_frames(images, pole_roi_px=args.pole_roi, sample_roi_px=args.sample_roi,
+                                gamma=args.gamma if args.gamma is not None else 1.0)
         obj = t.to_json()
         line = (f"sample {obj['sample_angle_deg']:+.4f} deg  pole {obj['pole_angle_deg']:+.4f} "
                 f"deg  tilt {t.tilt_deg:+.4f} +- {t.u_deg:.4f} deg")
         return obj, line
     from alignd.vision.rim import fit_rim_frames
-    f = fit_rim_frames(images, args.radius_mm, args.height_mm)
+    f = fit_rim_frames([_linear(img, args) for img in images], args.radius_mm, args.height_mm)
     line = (f"ellipse centre ({f.center_px[0]:.3f}, {f.center_px[1]:.3f}) px  axes "
             f"{f.axes_px[0]:.3f} x {f.axes_px[1]:.3f} px  e {f.eccentricity:.4f} +- "
             f"{_fmt(f.eccentricity_std, 4)}  camera zenith {_fmt(f.camera_zenith_deg, 3)} deg")

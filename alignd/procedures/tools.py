@@ -225,11 +225,13 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     pc = cfg.procedure.precheck if cfg is not None else None
 
     def tilt_frames(frames: list[Frame], more: MoreFrames | None = None) -> TiltReading:
-        grab = None if more is None else (lambda k: [seen(f) for f in more(k)])
+        # the frames as the camera coded them: the JPEG bias step reads that coding, and
+        # the tone curve is undone inside
+        grab = None if more is None else (lambda k: [f.gray for f in more(k)])
         av = vision.measure_tilt_frames(
-            [seen(f) for f in frames], pole_roi_px=pole_roi, sample_roi_px=sample_roi,
+            [f.gray for f in frames], pole_roi_px=pole_roi, sample_roi_px=sample_roi,
             more=grab, u_target_deg=pc.tilt_u_target_deg if pc else None,
-            max_frames=pc.tilt_max_frames if pc else None)
+            max_frames=pc.tilt_max_frames if pc else None, gamma=gammas["side"])
         return TiltReading(av.tilt_deg, av.u_deg, av.n, av.stop)
 
     def eccentricity(frame: Frame) -> float:

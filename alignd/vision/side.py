@@ -35,6 +35,7 @@ from alignd.vision.edges import (
     despeckle,
     edge_points,
     fit_line,
+    linearise,
 )
 from alignd.vision.jpeg_bias import EdgeBias, edge_angle_bias, jpeg_quality
 
@@ -664,8 +665,8 @@ def measure_tilt_frames(images: list[np.ndarray], *,
                         pole_roi_px: tuple[int, int, int, int] | None = None,
                         sample_roi_px: tuple[int, int, int, int] | None = None,
                         more: Callable[[int], list[np.ndarray]] | None = None,
-                        u_target_deg: float | None = None, max_frames: int | None = None
-                        ) -> TiltAverage:
+                        u_target_deg: float | None = None, max_frames: int | None = None,
+                        gamma: float = 1.0) -> TiltAverage:
     """The tilt from several frames of the same view (the pre-check's measurement): the
     first frame is measured as :func:`measure_tilt` does, the others track its edges (a
     full search again where an edge is not where it was). From 3 frames on, 8-bit grey
@@ -676,24 +677,33 @@ def measure_tilt_frames(images: list[np.ndarray], *,
     ``max_frames`` in all, and, on JPEG-coded frames, no further once a doubling lowered
     it by less than :data:`STALL` (independent noise falls by 1/sqrt 2; what the frames
     share, JPEG's coding of a still view, does not). ``TiltAverage.stop`` says why it
-    stopped."""
+    stopped. ``gamma``: the camera's tone curve (``cameras[].gamma``), undone before each
+    raw frame is measured (:func:`alignd.vision.edges.linearise`); ``images`` and
+    ``more``'s are the frames as the camera delivered them. JPEG-coded ones are measured
+    as coded, the coding's bias taken off there: undoing the curve after the coding did
+    worse than leaving it (docs/vision.md, "A camera's tone curve")."""
     if not images:
         raise VisionError("side image: no frame to measure the tilt in")
     images = list(images)
-    first = measure_tilt(images[0], pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px)
+    first = measure_tilt(linearise(images[0], gamma), pole_roi_px=pole_roi_px,
+                         sample_roi_px=sample_roi_px)
+    # the frames' JPEG quality (None: not coded), read once: the bias step needs it, and
+    # so does the stall rule below
+    quality = (_coded_quality(images[0], first) if len(images) >= 3 or more is not None
+               else None)
+    if quality is not None and gamma != 1.0:
+        gamma = 1.0
+        first = measure_tilt(images[0], pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px)
     frames = [first]
 
     def track(new: list[np.ndarray]) -> None:
-        for img in new:
+        for raw in new:
+            img = linearise(raw, gamma)
             m = _tracked(img, first)
             frames.append(m if m is not None else measure_tilt(
                 img, pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px))
 
     track(images[1:])
-    # the frames' JPEG quality (None: not coded), read once: the bias step needs it, and
-    # so does the stall rule below
-    quality = (_coded_quality(images[0], first) if len(images) >= 3 or more is not None
-               else None)
     stop = ""
     if more is not None and u_target_deg is not None:
         limit = max(max_frames or len(frames), len(frames))

@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -75,6 +75,7 @@ class Encoding:
     bits: Literal[8, 12] = 8
     msb_aligned: bool = False  # 12-bit values shifted into the top of 16 bits
     jpeg_quality: int | None = None
+    gamma: float = 1.0  # the tone curve: values (light)^(1/gamma) of full scale, before coding
 
 
 @dataclass(frozen=True)
@@ -270,7 +271,8 @@ def _light(rng: np.random.Generator, shape: tuple[int, int], *, gradient: float,
 
 def _finish(img: np.ndarray, rng: np.random.Generator, *, blur: float, read_noise: float,
             electrons_per_dn: float, enc: Encoding) -> np.ndarray:
-    """Defocus, noise, quantisation and encoding of an image in 8-bit DN (float)."""
+    """Defocus, noise, the tone curve, quantisation and coding of an image in 8-bit DN
+    (float)."""
     if blur > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur, borderType=cv2.BORDER_REFLECT)
     scale = 4095.0 / 255.0 if enc.bits == 12 else 1.0
@@ -278,6 +280,9 @@ def _finish(img: np.ndarray, rng: np.random.Generator, *, blur: float, read_nois
     var = np.float32((read_noise * scale) ** 2) + np.clip(img, 0, None) * np.float32(
         scale / electrons_per_dn)
     img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.sqrt(var)
+    if enc.gamma != 1.0:
+        full = np.float32(4095.0 if enc.bits == 12 else 255.0)
+        img = full * (np.clip(img, 0, None) / full) ** np.float32(1.0 / enc.gamma)
     np.rint(img, out=img)
     if enc.bits == 12:
         out16 = np.clip(img, 0, 4095).astype(np.uint16)
@@ -695,15 +700,17 @@ def _wide(poly: np.ndarray, ss: int) -> Polygon:
 
 
 def random_side_scene(rng: np.random.Generator, category: str | None = None,
-                      size_px: tuple[int, int] = (1280, 720), frames: int = 1
-                      ) -> SideSceneSample:
+                      size_px: tuple[int, int] = (1280, 720), frames: int = 1,
+                      gamma: float = 1.0) -> SideSceneSample:
     """One randomised side-camera view (see the module docstring); ``frames`` > 1 adds
     further frames of the same view with independent noise, as a camera streams them
-    (``SideSceneSample.frames``)."""
+    (``SideSceneSample.frames``). ``gamma``: the camera's tone curve, applied before the
+    coding (:class:`Encoding`; the same draws as without it)."""
     cat = str(category or SIDE_CATEGORIES[int(rng.integers(len(SIDE_CATEGORIES)))])
     w, h = size_px
     enc = Encoding(8, False, int(rng.integers(60, 96))) if cat == "jpeg" else (
         Encoding(12, bool(rng.random() < 0.5)) if cat == "12-bit" else Encoding())
+    enc = replace(enc, gamma=gamma)
     full = cat == "full-height sample" or (cat != "sample on holder" and rng.random() < 0.4)
     bg = float(rng.uniform(40, 220))
     roll = float(rng.uniform(-1.0, 1.0))
