@@ -87,7 +87,7 @@ class Band:
     share: float  # the smaller step over both
     gain: float  # the one step's residual sum of squares over the two steps'
     sigma_px: float  # standard error of inner_px (from the fit's residuals)
-    levels: tuple[float, float] = (math.nan, math.nan)  # DN: the band's, the face's beyond it
+    levels: tuple[float, float]  # DN: the band's level and the face's beyond its inner step
 
 
 @dataclass(frozen=True)

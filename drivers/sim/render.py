@@ -46,6 +46,7 @@ __all__ = [
     "render_side",
     "render_top",
     "side_truth",
+    "tone_curve",
     "top_truth",
     "undistort_points",
 ]
@@ -376,6 +377,13 @@ def finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
     return _finish(img, opts, rng)
 
 
+def tone_curve(img: np.ndarray, gamma: float, full: float = 255.0) -> np.ndarray:
+    """A camera's tone curve on light ``img`` (float, DN of ``full`` scale): full (light /
+    full)^(1 / gamma), float32 (negative light, from noise, is taken as none)."""
+    f = np.float32(full)
+    return (f * (np.clip(img, 0, None) / f) ** np.float32(1.0 / gamma)).astype(np.float32)
+
+
 def _finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
             ) -> np.ndarray:
     """Illumination, blur, noise, the tone curve and quantisation, applied in place where
@@ -410,9 +418,7 @@ def _finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | Non
             noise *= np.float32(opts.read_noise_dn)
         img += noise
     if opts.gamma != 1.0:
-        np.clip(img, 0, None, out=img)
-        img = (np.float32(255.0) * (img / np.float32(255.0)) ** np.float32(1.0 / opts.gamma)
-               ).astype(np.float32)
+        img = tone_curve(img, opts.gamma)
     if opts.quantize:
         np.rint(img, out=img)
         np.clip(img, 0, 255, out=img)

@@ -41,7 +41,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from drivers.sim.render import Conic, Polygon, Raster, coverage
+from drivers.sim.render import Conic, Polygon, Raster, coverage, tone_curve
 
 __all__ = [
     "RIM_CATEGORIES",
@@ -281,8 +281,7 @@ def _finish(img: np.ndarray, rng: np.random.Generator, *, blur: float, read_nois
         scale / electrons_per_dn)
     img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.sqrt(var)
     if enc.gamma != 1.0:
-        full = np.float32(4095.0 if enc.bits == 12 else 255.0)
-        img = full * (np.clip(img, 0, None) / full) ** np.float32(1.0 / enc.gamma)
+        img = tone_curve(img, enc.gamma, 4095.0 if enc.bits == 12 else 255.0)
     np.rint(img, out=img)
     if enc.bits == 12:
         out16 = np.clip(img, 0, 4095).astype(np.uint16)
