@@ -46,6 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from alignd.config import PrecheckConfig  # noqa: E402
 from alignd.errors import VisionError  # noqa: E402
+from alignd.vision.camera_check import check_frames  # noqa: E402
 from alignd.vision.edges import linearise  # noqa: E402
 from alignd.vision.holder import measure_yaw, order_corners, track_holder  # noqa: E402
 from alignd.vision.lens import Lens  # noqa: E402
@@ -70,6 +71,7 @@ from drivers.sim.scenes import (  # noqa: E402
     RIM_CATEGORIES,
     SIDE_CATEGORIES,
     TOP_CATEGORIES,
+    Encoding,
     hard_shadow_scene,
     plate_scene,
     random_rim_scene,
@@ -734,6 +736,58 @@ def camera_frames(n: int, seed: int) -> list[Target]:
              rms["specks"] <= 1.1 * lin)]
 
 
+def camera_checks(n: int, seed: int) -> list[Target]:
+    """``alignctl analyze camera`` (:func:`check_frames`) on the first ``n`` side views of
+    ``seed`` (8 frames each, the categories in turn), drawn linear and through a tone
+    curve of :data:`GAMMA` (the same draws), and their 8-bit linear views sharpened
+    (unsharp mask, amount 1, radius 1 px: a camera's mild default; the raw 8-bit views).
+    A verdict is wrong
+    when it says "tone curve" of a linear view, "linear" of the curved one, or
+    "sharpens" of a raw one; a view whose levels span too little, or whose gamma is
+    uncertain, gets no verdict (JPEG views: none by design)."""
+    rng = np.random.default_rng(seed)
+    verdict: dict[str, list[str]] = {"linear": [], "curve": []}
+    errs: list[float] = []
+    sharp_told = sharp_n = raw_false = 0
+    for i in range(n):
+        cat = SIDE_CATEGORIES[i % len(SIDE_CATEGORIES)]
+        st = rng.bit_generator.state
+        first = random_side_scene(rng, cat, frames=8)
+        lin = list(first.frames)
+        rng.bit_generator.state = st
+        cur = list(random_side_scene(rng, cat, frames=8, gamma=GAMMA).frames)
+        for key, frames, g in (("linear", lin, 1.0), ("curve", cur, GAMMA)):
+            c = check_frames(frames)
+            said = [f for f in c.findings if "tone curve" in f.what and f.level == "act"]
+            ok = [f for f in c.findings if f.level == "ok" and f.what.startswith("linear")]
+            verdict[key].append("curve" if said else "linear" if ok else "-")
+            if math.isfinite(c.gamma):
+                errs.append(c.gamma - g)
+            if key == "linear" and first.encoding == Encoding():  # raw 8-bit
+                raw_false += any("sharpens" in f.what for f in c.findings)
+                sh = check_frames([_unsharp(f) for f in frames])
+                sharp_n += 1
+                sharp_told += any("sharpens" in f.what for f in sh.findings)
+    wrong = (sum(v == "curve" for v in verdict["linear"])
+             + sum(v == "linear" for v in verdict["curve"]))
+    curved = sum(v == "curve" for v in verdict["curve"])
+    linear = sum(v == "linear" for v in verdict["linear"])
+    big = sum(abs(e) > 0.3 for e in errs)
+    return [(f"camera check: tone curve told on {n} views at gamma {GAMMA} / {n} linear "
+             f"ones, wrong verdicts", f"{curved} / {linear}, {wrong}", "0 wrong", wrong == 0),
+            (f"camera check: gamma error RMS, read from {len(errs)} views (off by > 0.3)",
+             f"{_rms(errs):.3f} ({big})", "(info)", None),
+            (f"camera check: sharpening told / raw views called sharpened ({sharp_n} views)",
+             f"{sharp_told} / {raw_false}", f"{sharp_n} / 0",
+             sharp_told == sharp_n and raw_false == 0)]
+
+
+def _unsharp(img: np.ndarray, amount: float = 1.0, radius: float = 1.0) -> np.ndarray:
+    f = img.astype(np.float32)
+    return np.clip(np.rint(f + amount * (f - cv2.GaussianBlur(f, (0, 0), radius))), 0,
+                   255).astype(np.uint8)
+
+
 def print_side(c_side: int, seed: int, frames: int = TILT_FRAMES,
                u_target: float | None = TILT_U_TARGET, max_frames: int = TILT_MAX_FRAMES,
                size_px: tuple[int, int] = FRAME) -> dict[str, float]:
@@ -904,6 +958,7 @@ def main(argv: list[str] | None = None) -> int:
         targets += side_targets(print_side(c_side, args.seed + 200, args.tilt_frames,
                                            u_target, args.tilt_max_frames, args.size),
                                 args.tilt_frames, u_target)
+        targets += camera_checks(5 if args.quick else 60, args.seed + 500)
     if "rim" in want:
         targets += rim_targets(print_rim(c_rim, args.seed + 300, args.rim_turn_deg,
                                          args.size),

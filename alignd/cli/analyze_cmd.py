@@ -1,10 +1,14 @@
-"""``alignctl analyze top|side|rim IMAGE...``: measure camera frames offline.
+"""``alignctl analyze top|side|rim|camera IMAGE...``: measure camera frames offline.
 
 - ``top``: the holder's corners and pose (centre, angle) and a quality figure per image;
   with ``--sweep-out FILE`` the series becomes a sweep file for ``alignctl solve`` (angles
   from ``--angles`` or from the file names, e.g. ``sweep_-10.0deg.png``).
 - ``side``: the sample-edge angle, the pole angle and the tilt between them.
 - ``rim``: the turntable rim's ellipse, its eccentricity and the camera zenith it implies.
+- ``camera``: what the camera does to its frames, from frames of one still view (any
+  scene with dark and bright parts; 8 frames, as the camera delivers them): clipping, JPEG
+  coding, defective pixels, sharpening or smoothing, and its tone curve (gamma), each with
+  what to do about it. One result for all the frames.
 
 Each image is analysed on its own: an unreadable image or one without a target is
 reported (stderr, and an ``{"file", "error"}`` line with ``--json``), the others are still
@@ -36,7 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("analyze", help="measure top / side / rim camera images offline",
                        description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("kind", choices=["top", "side", "rim"], help="what the images show")
+    p.add_argument("kind", choices=["top", "side", "rim", "camera"],
+                   help="what the images show (camera: frames of one still view, checked "
+                        "for what the camera does to them)")
     p.add_argument("images", nargs="+", metavar="IMAGE", help="image file(s): PNG, JPEG, TIFF...")
     p.add_argument("--json", action="store_true",
                    help="one JSON object per line per image (the analyze-output contract)")
@@ -243,6 +249,8 @@ def run(args: argparse.Namespace) -> int:
     if args.mean and args.kind == "top":
         raise InputError("--mean applies to 'analyze side' and 'analyze rim' (a top sweep's "
                          "frames are at different angles: --sweep-out)")
+    if args.kind == "camera":
+        return _check_camera(list(args.images), args.json)
     _apply_config(args)
     if args.mean:
         try:
@@ -295,6 +303,30 @@ def run(args: argparse.Namespace) -> int:
     if args.sweep_out and angles is not None:
         _write_sweep(args.sweep_out, angles, features, args.pixel_size_um)
     return status
+
+
+def _check_camera(names: list[str], as_json: bool) -> int:
+    """``analyze camera``: one check of all the frames (vision.camera_check)."""
+    from alignd.cli import EXIT_OK, EXIT_USAGE
+    from alignd.vision.camera_check import check_frames, gamma_text
+    try:
+        c = check_frames([read_image(n) for n in names])
+    except (InputError, VisionError) as exc:
+        print(f"alignctl analyze: error: {exc}", file=sys.stderr)
+        if as_json:
+            print(json.dumps({"files": names, "error": str(exc)}), flush=True)
+        return EXIT_USAGE
+    if as_json:
+        print(json.dumps({"files": names, **c.to_json()}), flush=True)
+        return EXIT_OK
+    corr = " / ".join(_fmt(v, 2) for v in c.noise_correlation)
+    print(f"{c.frames} frame(s) of {c.size_px[0]} x {c.size_px[1]} px, {c.bits}-bit; "
+          f"clipped {100 * c.clipped_high:.2f} % at full scale, {100 * c.clipped_low:.2f} % "
+          f"at zero; JPEG quality {c.jpeg_quality or '-'}; noise {_fmt(c.noise_dn, 2)} DN, "
+          f"neighbours' correlation {corr} (rows / columns); {gamma_text(c)}", flush=True)
+    for f in c.findings:
+        print(f"  [{f.level}] {f.what}" + (f": {f.advice}" if f.advice else ""), flush=True)
+    return EXIT_OK
 
 
 def _write_sweep(path: str, angles: list[float], features: list[np.ndarray],

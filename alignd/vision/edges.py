@@ -28,7 +28,7 @@ __all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_cros
            "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
            "coarse_edges_many", "despeckle", "edge_points", "edge_points_many", "edge_rows",
            "fit_line", "intersect", "linearise", "residual_correlation", "segment_median",
-           "sensor_full_scale", "xy_columns"]
+           "sensor_full_scale", "speck_mask", "xy_columns"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -51,6 +51,16 @@ _RING = np.ones((3, 3), np.uint8)
 _RING[1, 1] = 0
 
 
+def speck_mask(gray: np.ndarray) -> np.ndarray:
+    """1 where a pixel of ``gray`` (2-D, 8-bit or float in 8-bit DN) is a speck (see
+    :func:`despeckle`), else 0, in ``gray``'s dtype."""
+    # how far each pixel stands above its neighbours' largest or below their smallest
+    # (OpenCV throughout: a frame without specks costs two 3 x 3 passes and a count)
+    out_of = cv2.max(cv2.subtract(gray, cv2.dilate(gray, _RING)),
+                     cv2.subtract(cv2.erode(gray, _RING), gray))
+    return np.asarray(cv2.threshold(out_of, SPECK_DN, 1, cv2.THRESH_BINARY)[1])
+
+
 def despeckle(gray: np.ndarray, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """``gray`` (2-D, 8-bit or float in 8-bit DN) with its specks replaced by the median of
     their 8 neighbours (within ``box``, x0, y0, x1, y1 exclusive, if given); ``gray``
@@ -69,12 +79,7 @@ def despeckle(gray: np.ndarray, box: tuple[int, int, int, int] | None = None) ->
         max(box[0], 0), max(box[1], 0), min(box[2], w), min(box[3], h))
     if x1 - x0 < 3 or y1 - y0 < 3:
         return gray
-    part = gray[y0:y1, x0:x1]
-    # how far each pixel stands above its neighbours' largest or below their smallest
-    # (OpenCV throughout: a frame without specks costs two 3 x 3 passes and a count)
-    out_of = cv2.max(cv2.subtract(part, cv2.dilate(part, _RING)),
-                     cv2.subtract(cv2.erode(part, _RING), part))
-    mask = cv2.threshold(out_of, SPECK_DN, 1, cv2.THRESH_BINARY)[1]
+    mask = speck_mask(gray[y0:y1, x0:x1])
     if cv2.countNonZero(mask) == 0:
         return gray
     ys, xs = np.nonzero(mask)

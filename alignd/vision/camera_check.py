@@ -1,0 +1,328 @@
+"""What a camera does to its frames, read from a few frames of a still view.
+
+A lab setting up a rig has a camera whose processing it does not know: a tone curve
+(gamma), sharpening, noise reduction, JPEG/MJPEG coding, hot pixels, an exposure that
+clips. Each moves edges in its own way (docs/vision.md, "What a camera does to its
+frames"), and most can be switched off or told to alignd. :func:`check_frames` reads them
+from frames of one still view (any scene; a few distinct grey levels help), with the
+temporal noise as the probe: what the camera does to the noise it does to the edges.
+
+- The noise's **level dependence** gives the tone curve: a linear camera's noise variance
+  grows with the level (shot noise) or stays flat (read noise); a curve v = 255 (L /
+  255)^(1/gamma) compresses the bright levels' noise, so the variance falls as the level
+  rises. The fit of var(v) = (r^2 + L / g) / (dL/dv)^2 over the levels gives gamma (the
+  photon transfer method of EMVA 1288, in the coded domain).
+- The noise's **correlation between neighbouring pixels** gives the spatial processing:
+  raw sensor noise is white (correlation 0), sharpening makes neighbours anti-correlated,
+  noise reduction, demosaicing and JPEG make them correlated.
+- Specks (pixels far above or below all 8 neighbours) at the same place in every frame
+  are the sensor's defective pixels; the JPEG quality is found by coding a frame again.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import nnls
+from scipy.stats import chi2
+
+from alignd.errors import VisionError
+from alignd.vision.edges import as_gray, sensor_full_scale, speck_mask
+from alignd.vision.jpeg_bias import jpeg_quality
+
+__all__ = ["CameraCheck", "Finding", "check_frames", "gamma_text"]
+
+_CLIP_HI, _CLIP_LO = 254.5, 0.5  # 8-bit DN of full scale: clipped at or beyond these
+CLIPPED_WARN = 0.001  # a share of pixels clipped above which exposure should come down
+# the neighbouring pixels' noise correlation (the mean of along rows and along columns)
+# beyond which the camera filters its frames (raw sensor noise: within +-0.02)
+SHARPENED_CORR = -0.05
+SMOOTHED_CORR = 0.15
+_GAMMAS = np.round(np.arange(0.8, 3.2001, 0.01), 2)  # the tone curves tried
+GAMMA_LINEAR = 1.2  # a fitted gamma below this (within its uncertainty) reads as linear
+_BIN_DN = 4.0  # the levels' bins (8-bit DN)
+_MIN_BIN_PX = 300  # pixels a bin needs to count
+_LEVELS_MIN, _LEVELS_MAX = 6.0, 248.0  # the levels fitted (clipping bends the noise beyond)
+_REL_FLOOR = 0.005  # a bin's variance is trusted to this share at best
+MIN_LEVEL_SPAN = 60.0  # DN between the darkest and brightest level fitted, for a gamma
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One thing the check found: ``key`` which (clipped_high, clipped_low, jpeg,
+    defective_pixels, specks, frames, sharpened, smoothed, gamma), ``level`` "ok", "note"
+    (worth knowing) or "act" (change a camera setting or alignd's config), what was seen,
+    and what to do."""
+
+    key: str
+    level: str
+    what: str
+    advice: str = ""
+
+    def to_json(self) -> dict[str, str]:
+        return {"key": self.key, "level": self.level, "what": self.what,
+                "advice": self.advice}
+
+
+@dataclass(frozen=True)
+class CameraCheck:
+    """What :func:`check_frames` read from the frames (NaN / None: not measurable, with
+    the reason in ``findings``)."""
+
+    frames: int
+    size_px: tuple[int, int]  # width, height
+    bits: int  # 8, or the sensor's bits in 16-bit words
+    clipped_high: float  # share of pixels at full scale
+    clipped_low: float  # share at zero
+    jpeg_quality: int | None
+    specks_per_frame: float  # pixels far above or below all 8 neighbours, a frame's mean
+    defective_pixels: int  # specks at the same pixel in every frame (2 frames or more)
+    noise_dn: float  # temporal noise, RMS over the frame (8-bit DN of full scale)
+    noise_correlation: tuple[float, float]  # neighbours' noise correlation: along rows, columns
+    gamma: float  # the tone curve fitted to the noise's level dependence
+    gamma_u: float  # its standard uncertainty
+    gamma_range: tuple[float, float]  # every gamma the noise allows (3 sigma)
+    level_span_dn: tuple[float, float]  # the darkest and brightest levels fitted
+    findings: list[Finding] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, object]:
+        def num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+        return {"frames": self.frames, "size_px": list(self.size_px), "bits": self.bits,
+                "clipped_high": self.clipped_high, "clipped_low": self.clipped_low,
+                "jpeg_quality": self.jpeg_quality, "specks_per_frame": self.specks_per_frame,
+                "defective_pixels": self.defective_pixels, "noise_dn": num(self.noise_dn),
+                "noise_correlation": [num(v) for v in self.noise_correlation],
+                "gamma": num(self.gamma), "gamma_u": num(self.gamma_u),
+                "gamma_range": [num(v) for v in self.gamma_range],
+                "level_span_dn": [num(v) for v in self.level_span_dn],
+                "findings": [f.to_json() for f in self.findings]}
+
+
+def check_frames(frames: Sequence[np.ndarray]) -> CameraCheck:
+    """Read what the camera does to its frames from ``frames`` of one still view (8- or
+    16-bit grey or BGR, as the camera delivers them: not linearised). One frame gives
+    the clipping, the specks and the JPEG quality; the noise, its correlation and the
+    tone curve need two or more (8 give gamma to about +-0.1 on a view with levels over
+    100 DN apart). Raises VisionError on frames that are not one view's."""
+    if len(frames) == 0:
+        raise VisionError("camera check: no frames")
+    raw = [np.asarray(f) for f in frames]
+    if any(f.shape != raw[0].shape for f in raw):
+        raise VisionError("camera check: the frames differ in size (not one camera's view)")
+    grays = [as_gray(f, "camera frame") for f in raw]
+    h, w = grays[0].shape
+    bits = 8 if raw[0].dtype == np.uint8 else round(math.log2(
+        max(sensor_full_scale(f) for f in raw) + 1))
+    stack = np.stack(grays)
+    hi, lo = stack >= _CLIP_HI, stack <= _CLIP_LO
+    quality = jpeg_quality(grays[0]) if raw[0].dtype == np.uint8 else None
+    masks = np.stack([speck_mask(g) > 0 for g in grays])
+    specks = float(masks.sum(axis=(1, 2)).mean())
+    defective = int(np.all(masks, axis=0).sum()) if len(grays) >= 2 else 0
+    noise, corr = math.nan, (math.nan, math.nan)
+    nan2 = (math.nan, math.nan)
+    curve = _Curve(math.nan, math.nan, nan2, nan2)
+    if len(grays) >= 2:
+        noise, corr, curve = _noise(stack, hi | lo | masks, bits)
+        if quality is not None:  # the coding reshapes the noise: no tone curve read from it
+            curve = _Curve(math.nan, math.nan, nan2, curve.span)
+    check = CameraCheck(len(grays), (w, h), bits, float(hi.mean()), float(lo.mean()),
+                        quality, specks, defective, noise, corr, curve.gamma, curve.u,
+                        curve.allowed, curve.span)
+    return replace(check, findings=_findings(check))
+
+
+@dataclass(frozen=True)
+class _Curve:
+    gamma: float
+    u: float
+    allowed: tuple[float, float]
+    span: tuple[float, float]
+
+
+def _noise(stack: np.ndarray, bad: np.ndarray, bits: int
+           ) -> tuple[float, tuple[float, float], _Curve]:
+    """The temporal noise (RMS, DN), its neighbours' correlation along rows and columns,
+    and the tone curve fitted to its level dependence, from frames of a still view
+    (``bad``: clipped pixels and specks, left out)."""
+    n = stack.shape[0]
+    keep = ~np.any(bad, axis=0)
+    # a flickering light scales whole frames: each frame brought to the mean frame's level
+    means = np.array([float(f[keep].mean()) for f in stack])
+    stack = stack * (means.mean() / np.maximum(means, 1e-6))[:, None, None]
+    mean = stack.mean(axis=0)
+    res = stack - mean[None]
+    var = (res * res).sum(axis=0) / (n - 1)
+    noise = math.sqrt(float(np.median(var[keep])) / _median_scale(n - 1))
+    # the correlation of each pixel's residual with its right and its lower neighbour's
+    # (the residuals about the frames' mean have the noise's correlation)
+    both_r = keep[:, 1:] & keep[:, :-1]
+    both_c = keep[1:, :] & keep[:-1, :]
+    ss = float((res * res)[:, keep].sum()) / max(int(keep.sum()), 1)
+    cr = float((res[:, :, 1:] * res[:, :, :-1])[:, both_r].sum()) / max(int(both_r.sum()), 1)
+    cc = float((res[:, 1:, :] * res[:, :-1, :])[:, both_c].sum()) / max(int(both_c.sum()), 1)
+    # (the rounding to whole DN adds white noise after any filter: not the camera's)
+    ss -= (1.0 - 1.0 / n) * _rounding_var(bits)
+    corr = (cr / ss, cc / ss) if ss > 0 else (math.nan, math.nan)
+    return noise, corr, _tone_curve(mean[keep], var[keep], n - 1, bits)
+
+
+def _rounding_var(bits: int) -> float:
+    """The variance (8-bit DN^2) that rounding to the camera's whole DN adds."""
+    return (255.0 / (2 ** bits - 1)) ** 2 / 12.0
+
+
+def _median_scale(dof: int) -> float:
+    """The median of a variance estimate with ``dof`` degrees of freedom over the
+    variance (a robust level's estimate, unbiased by this factor)."""
+    return float(chi2.median(dof)) / dof
+
+
+def _tone_curve(level: np.ndarray, var: np.ndarray, dof: int, bits: int) -> _Curve:
+    """gamma, its standard uncertainty and the range of gammas the noise allows, fitted to
+    the noise variance's level dependence (per bin of levels), and the span of levels
+    fitted; NaN where the levels span under MIN_LEVEL_SPAN DN."""
+    nan2 = (math.nan, math.nan)
+    sel = (level >= _LEVELS_MIN) & (level <= _LEVELS_MAX)
+    idx = np.floor(level[sel] / _BIN_DN).astype(int)
+    v = var[sel]
+    order = np.argsort(idx, kind="stable")
+    idx, v = idx[order], v[order]
+    bins, starts, counts = np.unique(idx, return_index=True, return_counts=True)
+    good = counts >= _MIN_BIN_PX
+    if not good.any():
+        return _Curve(math.nan, math.nan, nan2, nan2)
+    # each bin's variance: the mean of its pixels' variances without the outlying ones
+    # (beyond all but 1e-4 of the noise's own: an edge that moved, a flickering speck),
+    # which the median alone would not need, but the median of rounded 8-bit values
+    # varies with the level by 1-2 % (the sample variances lie on a lattice)
+    cut = float(chi2.ppf(1.0 - 1e-4, dof)) / dof / _median_scale(dof)
+    lev_s = level[sel][order]
+    med = np.empty(bins.size)
+    lev = np.empty(bins.size)
+    for j, (s, c) in enumerate(zip(starts, counts, strict=True)):
+        vb = v[s:s + c]
+        med[j] = float(vb[vb <= cut * float(np.median(vb))].mean())
+        lev[j] = float(lev_s[s:s + c].mean())
+    med, lev, counts = med[good], lev[good], counts[good]
+    span = (float(lev.min()), float(lev.max()))
+    if span[1] - span[0] < MIN_LEVEL_SPAN or lev.size < 4:
+        return _Curve(math.nan, math.nan, nan2, span)
+    # a mean variance's standard error, var sqrt(2 / (dof n)), floored: the bins of many
+    # pixels would otherwise outweigh the levels' trend (which is what gamma is) by
+    # effects of a few per mille
+    sd = med * np.sqrt(2.0 / (dof * counts) + _REL_FLOOR ** 2)
+    quant = _rounding_var(bits)
+    x = np.clip(lev / 255.0, 1e-3, 1.0)
+    chi = np.empty(_GAMMAS.size)
+    for k, g in enumerate(_GAMMAS):
+        slope = g * x ** (g - 1.0)  # dL/dv, L = 255 x^g
+        A = np.column_stack([1.0 / slope ** 2, 255.0 * x ** g / slope ** 2]) / sd[:, None]
+        coef, _ = nnls(A, (med - quant) / sd)
+        chi[k] = float(np.sum((A @ coef - (med - quant) / sd) ** 2))
+    k = int(np.argmin(chi))
+    if k in (0, _GAMMAS.size - 1):  # no curve of the range fits: not a tone curve's noise
+        return _Curve(math.nan, math.nan, nan2, span)
+    dof_fit = max(lev.size - 3, 1)
+    scale = max(float(chi[k]) / dof_fit, 1.0)  # misfit beyond the noise widens u
+    # u: a third of the half-width of the 3-sigma profile interval. The read and the shot
+    # noise trade off against the curve where the view has few levels (a linear camera's
+    # var = r^2 + L / g and a curved one's with little shot noise both rise with the
+    # level): chi^2 then has a second, nearly as deep minimum (corpus views: 1.0 and 1.54
+    # within 5 of each other), which a 1-sigma interval about the deeper one leaves out.
+    # Noise that does not change with the level is the extreme case: a linear camera's
+    # read noise and a gamma 2 camera's shot noise (var of L / g over (dL/dv)^2, L ~ v^2)
+    # look the same, and the range then spans both
+    within = _GAMMAS[chi <= chi[k] + 9.0 * scale]
+    g_best = float(_GAMMAS[k])
+    lo, hi = float(within.min()), float(within.max())
+    u = max(max(hi - g_best, g_best - lo) / 3.0, 0.02)
+    return _Curve(g_best, u, (min(lo, g_best - 3 * u), max(hi, g_best + 3 * u)), span)
+
+
+def gamma_text(c: CameraCheck) -> str:
+    """The tone curve as measured: "gamma 2.21 +- 0.04", or the range the noise allows
+    where that is wide ("gamma 0.9-2.1"), or "not measured"."""
+    if not math.isfinite(c.gamma):
+        return "gamma not measured"
+    lo, hi = c.gamma_range
+    if hi - lo > 0.6:
+        return f"gamma {lo:.1f}-{hi:.1f}"
+    return f"gamma {c.gamma:.2f} +- {c.gamma_u:.2f}"
+
+
+def _findings(c: CameraCheck) -> list[Finding]:
+    """What to tell the lab, most pressing first."""
+    out: list[Finding] = []
+
+    def add(key: str, level: str, what: str, advice: str = "") -> None:
+        out.append(Finding(key, level, what, advice))
+
+    if c.clipped_high > CLIPPED_WARN:
+        add("clipped_high", "act", f"{100 * c.clipped_high:.2f} % of the pixels are at full "
+            "scale", "lower the exposure or gain until the brightest part of the holder, "
+            "disc or sample stays below full scale (a clipped edge is measured from its "
+            "unclipped side only)")
+    if c.clipped_low > CLIPPED_WARN:
+        add("clipped_low", "note", f"{100 * c.clipped_low:.2f} % of the pixels are at zero",
+            "raise the black level or the exposure if the dark parts matter (a dark "
+            "holder's face or the floor)")
+    if c.jpeg_quality is not None:
+        add("jpeg", "act" if c.jpeg_quality < 90 else "note", "the frames are "
+            f"JPEG/MJPEG-coded at quality {c.jpeg_quality}", "choose an uncompressed format "
+            "(GREY, Y16, YUYV) if the camera offers one at the frame size; below quality 80 "
+            "the side camera's tilt errs by up to 0.003 deg (docs/vision.md)")
+    if c.defective_pixels:
+        add("defective_pixels", "note", f"{c.defective_pixels} defective pixels (hot or dead, "
+            "the same in every frame)", "alignd replaces them (it also finds them in one "
+            "frame); the camera's own defect-pixel correction, if it has one, is as good")
+    elif c.frames < 2 and c.specks_per_frame:
+        add("specks", "note", f"{c.specks_per_frame:.0f} specks (pixels far from all 8 "
+            "neighbours)", "alignd replaces them")
+    if c.frames < 2:
+        add("frames", "note", "one frame: the noise, its correlation and the tone curve are "
+            "not measured", "give 2 or more frames of the same still view (8 for the tone "
+            "curve)")
+        return out
+    ch = 0.5 * (c.noise_correlation[0] + c.noise_correlation[1])
+    # (a filter mixes neighbouring levels' noise: the tone curve's fit is rougher then)
+    rough = "" if SHARPENED_CORR <= ch <= SMOOTHED_CORR else \
+        " (rough: the camera filters its frames)"
+    if c.jpeg_quality is None and ch < SHARPENED_CORR:
+        add("sharpened", "act", f"the camera sharpens its frames (neighbouring pixels' noise "
+            f"correlates {ch:+.2f})", "set its sharpness to the lowest value (v4l2-ctl -c "
+            "sharpness=0 on a UVC camera): strong sharpening makes 1 in 8 holders "
+            "unmeasurable")
+    elif c.jpeg_quality is None and ch > SMOOTHED_CORR:
+        add("smoothed", "note", f"the camera smooths its frames (neighbouring pixels' noise "
+            f"correlates {ch:+.2f}: noise reduction, or a colour sensor's demosaicing)",
+            "turn noise reduction off; a monochrome camera measures about 20 % better than "
+            "a colour one")
+    g, (lo, hi) = c.gamma, c.gamma_range
+    two = "measure gamma with two exposures (docs/configure.md)"
+    if c.jpeg_quality is not None:
+        add("gamma", "note", "the tone curve is not read from JPEG-coded frames (the coding "
+            "reshapes the noise)", two)
+    elif not math.isfinite(c.level_span_dn[0]) or \
+            c.level_span_dn[1] - c.level_span_dn[0] < MIN_LEVEL_SPAN:
+        add("gamma", "note", f"the tone curve is not measured: the view's levels span under "
+            f"{MIN_LEVEL_SPAN:.0f} DN", "point the camera at a view with dark and bright "
+            "parts (the holder on the turntable)")
+    elif not math.isfinite(g):
+        add("gamma", "note", "the tone curve is not measured: the noise follows no curve of "
+            "gamma 0.8-3.2 (noise reduction, or a light that flickers unevenly)", two)
+    elif lo > GAMMA_LINEAR:
+        add("gamma", "act", f"the camera applies a tone curve: {gamma_text(c)}{rough}",
+            f"set the camera's gamma to 1 (linear) if it can, else set cameras[].gamma to "
+            f"{g:.1f} (better: {two})")
+    elif hi < GAMMA_LINEAR:
+        add("gamma", "ok", f"linear ({gamma_text(c)}){rough}")
+    else:
+        add("gamma", "note", f"{gamma_text(c)}{rough}: linear or a curve, not told apart "
+            "(noise that hardly changes with the level is a linear camera's read noise or a "
+            "gamma 2 camera's shot noise alike)", two)
+    return out
