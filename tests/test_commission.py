@@ -4,6 +4,7 @@ found and named, and a rig that matches its config passes."""
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -13,8 +14,9 @@ from procedures_support import scene_rig, sim_config
 
 from alignd.config import AligndConfig
 from alignd.procedures.commission import CommissionRecord, run_commission
-from alignd.procedures.tools import Tools
+from alignd.procedures.tools import CameraInfo, Tools
 from alignd.simulated import standin_tools
+from drivers.camera import Frame
 from drivers.sim.world import World
 
 
@@ -174,7 +176,6 @@ def test_a_holder_clipped_all_round_is_a_warning_that_names_the_exposure() -> No
     import dataclasses
 
     from alignd.procedures.tools import Corners
-    from drivers.camera import Frame
 
     cfg = sim_config()
     rig, _world = scene_rig(cfg, 2)
@@ -190,3 +191,82 @@ def test_a_holder_clipped_all_round_is_a_warning_that_names_the_exposure() -> No
     assert f is not None and f.verdict == "warn" and f.name == "clipped"
     assert said in f.message
     assert rec.verdict == "commissioned", rec.reason
+
+
+def _camera_tool(gamma: float | None, gamma_u: float | None, act: list[str]
+                 ) -> Callable[[list[Frame]], CameraInfo]:
+    """A stand-in for alignd.vision.camera_check: what it would read, whatever the frames."""
+    def camera(frames: list[Frame]) -> CameraInfo:
+        assert len(frames) == 8 and len({f.seq for f in frames}) == 8  # 8 distinct frames
+        allowed = None if gamma is None or gamma_u is None else (gamma - 3 * gamma_u,
+                                                                 gamma + 3 * gamma_u)
+        text = "gamma not measured" if gamma is None else f"gamma {gamma:.2f} +- {gamma_u:.2f}"
+        return CameraInfo(gamma, gamma_u, allowed, text, act, {"gamma": gamma, "findings": []})
+    return camera
+
+
+@pytest.mark.parametrize("configured", [1.0, 2.2])
+def test_commissioning_checks_the_top_cameras_tone_curve_against_its_config(
+        configured: float) -> None:
+    """A camera whose frames' noise says gamma 2.2 +- 0.06: with the config at 1 a warning
+    under top.camera that names the key and the value to set; at 2.2 a pass. Either way
+    the rig is commissioned and the check's numbers are in the record."""
+    import dataclasses
+
+    cfg = sim_config()
+    top = next(c for c in cfg.cameras if c.role == "top")
+    cfg.cameras[cfg.cameras.index(top)] = top.model_copy(update={"gamma": configured})
+    rig, _world = scene_rig(cfg, 2)
+    tools = dataclasses.replace(image_order_tools(2), camera=_camera_tool(2.2, 0.06, []))
+    rec = run_commission(rig, cfg, tools=tools, abort=threading.Event())
+    assert rec.verdict == "commissioned", rec.reason
+    f = rec.finding("top.camera")
+    assert f is not None and f.value["gamma"] == 2.2 and f.expected == {"gamma": configured}
+    if configured == 1.0:
+        assert f.verdict == "warn" and f.name == "camera settings"
+        assert "gamma 2.20 +- 0.06, the config says gamma 1" in f.message
+        assert f.config_fix == {"cameras.top.gamma": 2.2}
+    else:
+        assert f.verdict == "pass" and f.config_fix is None, f.message
+
+
+def test_commissioning_names_a_camera_setting_to_change() -> None:
+    """Settings the check says to change (sharpening, here) warn, the tone curve unknown."""
+    import dataclasses
+
+    cfg = sim_config()
+    rig, _world = scene_rig(cfg, 2)
+    said = "the camera sharpens its frames (neighbouring pixels' noise correlates -0.09): " \
+           "set its sharpness to the lowest value"
+    tools = dataclasses.replace(image_order_tools(2), camera=_camera_tool(None, None, [said]))
+    rec = run_commission(rig, cfg, tools=tools, abort=threading.Event())
+    f = rec.finding("top.camera")
+    assert f is not None and f.verdict == "warn" and said in f.message
+    assert f.config_fix is None
+    assert rec.verdict == "commissioned", rec.reason
+
+
+def test_the_daemons_camera_tool_reads_a_simulated_cameras_curve() -> None:
+    """default_tools' camera check on our simulated top camera's frames (8 of a still
+    view), drawn linear and through gamma 2.2: the curve within 3 u, a curve named where
+    there is one, and no camera setting to change (the simulated camera neither sharpens
+    nor clips)."""
+    from alignd.config import load_config
+    from alignd.procedures.tools import default_tools
+    from drivers.config import SimWorldConfig
+    from drivers.sim.sim_camera import SimCamera
+    from drivers.sim.world import World
+
+    tools = default_tools(load_config("configs/sim.yaml"))
+    assert tools.camera is not None
+    world = World(SimWorldConfig(), {}, np.random.default_rng(0))
+    for gamma in (1.0, 2.2):
+        cam = SimCamera(world, "top", seed=4, gamma=gamma)
+        info = tools.camera([cam.grab() for _ in range(8)])
+        assert info.gamma is not None and info.gamma_u is not None
+        assert abs(info.gamma - gamma) <= 3 * info.gamma_u, (gamma, info.gamma, info.gamma_u)
+        assert info.act == []
+        findings = info.record["findings"]
+        assert isinstance(findings, list)
+        curve = [f for f in findings if f["key"] == "gamma"]
+        assert (curve[0]["level"] == "act") == (gamma > 1)

@@ -53,8 +53,16 @@ from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
 from alignd.procedures.runout import RunoutMap, fit_runout
-from alignd.procedures.sweep import apply_h, grab_fresh, grab_rim_frames, rectifier, rot
+from alignd.procedures.sweep import (
+    apply_h,
+    grab_frames,
+    grab_fresh,
+    grab_rim_frames,
+    rectifier,
+    rot,
+)
 from alignd.procedures.tools import Tools, default_tools
+from drivers.camera import Camera, Frame
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +77,8 @@ ANGLE_ERROR_WARN_DEG = 0.01  # periodic encoder error that warns
 ROLE_CONE_DEG = 30.0  # a role moving within this of an axis of the holder frame "moves along" it
 SECOND_ANGLE_DEG = 90.0
 MAX_TURN_DISAGREE_DEG = 1.0  # stage directions at two table angles, turned back, must agree
+CAMERA_CHECK_FRAMES = 8  # a still view's frames for what the camera does (its tone curve)
+GAMMA_SLACK = 0.1  # a configured gamma this far outside the range the noise allows warns
 
 
 @runtime_checkable
@@ -459,6 +469,11 @@ class _Commission:
         assert self.tools is not None
         cam = self.rig.camera("top")
         assert cam is not None
+        pc = self.cfg.procedure.precheck
+        # a still view's frames: what the camera does to them (its tone curve against
+        # cameras[].gamma, sharpening, coding, clipping), and the rim's when it takes them
+        # still
+        still = self._camera_check("top", cam, max(pc.rim_frames, CAMERA_CHECK_FRAMES))
         if self.tools.rim is None:
             self._add(Finding("top.rim", "warn", "no rim measuring function: eccentricity and "
                               "zenith not measured", name="not measured"))
@@ -466,8 +481,8 @@ class _Commission:
         try:
             # the frames the alignment's rim pre-check averages (at small e one frame's
             # noise is most of e's uncertainty), turned as it turns them
-            pc = self.cfg.procedure.precheck
-            frames = grab_rim_frames(self.rig, cam, pc.rim_frames, pc.rim_turn_deg, self.abort)
+            frames = still[:pc.rim_frames] if still and not pc.rim_turn_deg else \
+                grab_rim_frames(self.rig, cam, pc.rim_frames, pc.rim_turn_deg, self.abort)
             info = self.tools.rim(frames, self.c.rim_radius_mm, self.c.top_camera_height_mm)
         except AligndError as exc:
             self._add(Finding("top.rim", "warn", f"rim not measurable: {exc}",
@@ -489,6 +504,42 @@ class _Commission:
                           sigma={"eccentricity": info.eccentricity_u},
                           expected={"max_eccentricity": e_max},
                           name="" if verdict == "pass" else "camera not on the axis"))
+
+    def _camera_check(self, role: Literal["top", "side"], cam: Camera, n: int
+                      ) -> list[Frame]:
+        """``n`` frames of the still view, checked for what the camera does to them
+        (``tools.camera``): a ``<role>.camera`` finding, a warning where a camera setting
+        should change or the frames' tone curve is not the configured ``gamma`` (the fix
+        named). Returns the frames ([] without the tool or when they could not be had)."""
+        assert self.tools is not None
+        if self.tools.camera is None:
+            return []
+        item = f"{role}.camera"
+        try:
+            frames = grab_frames(cam, n, self.abort)
+            info = self.tools.camera(frames)
+        except AligndError as exc:
+            self._add(Finding(item, "warn", f"{role} camera not checked: {exc}",
+                              name="not measured"))
+            return []
+        cfg_cam = self.cfg.camera(role)
+        configured = cfg_cam.gamma if cfg_cam is not None else 1.0
+        said = list(info.act)
+        fix = None
+        g, allowed = info.gamma, info.gamma_range
+        if g is not None and allowed is not None and not (
+                allowed[0] - GAMMA_SLACK <= configured <= allowed[1] + GAMMA_SLACK):
+            said.append(f"the frames' noise says the camera's tone curve is {info.text}, "
+                        f"the config says gamma {configured:g}: measure it (docs/configure.md, "
+                        f"two exposures) and set cameras[{role}].gamma")
+            fix = {f"cameras.{role}.gamma": round(g, 1)}
+        message = "; ".join(said) if said else (
+            f"tone curve {info.text} (config: gamma {configured:g}); no setting to change")
+        self._add(Finding(item, "warn" if said else "pass", f"{len(frames)} frames of a still "
+                          f"view: {message}", value=info.record, sigma={"gamma": info.gamma_u},
+                          expected={"gamma": configured}, config_fix=fix,
+                          name="camera settings" if said else ""))
+        return frames
 
     def _there_and_back(self, role: str, angle_deg: float, repeats: int
                         ) -> tuple[np.ndarray, float, float, float, float, np.ndarray]:

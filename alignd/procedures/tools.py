@@ -45,6 +45,21 @@ class RimInfo:
 
 
 @dataclass(frozen=True)
+class CameraInfo:
+    """What a camera does to its frames, read from a still view's (alignd.vision.
+    camera_check): its tone curve with its standard uncertainty (None: not measured), the
+    camera settings to change (each "what: advice"; the tone curve apart, which only the
+    config can judge), and every number and finding for the record."""
+
+    gamma: float | None
+    gamma_u: float | None
+    gamma_range: tuple[float, float] | None  # every gamma the noise allows (3 sigma)
+    text: str  # the curve as measured ("gamma 2.21 +- 0.04", "gamma 0.9-2.1")
+    act: list[str]
+    record: dict[str, object]
+
+
+@dataclass(frozen=True)
 class SideInfo:
     """The side camera's view: both targets found, their angles and positions."""
 
@@ -112,6 +127,8 @@ class Tools:
     side: Callable[[Frame], SideInfo] | None = None
     # several frames at once; with MoreFrames, more of them while the tilt is uncertain
     tilt_frames: Callable[[list[Frame], MoreFrames | None], TiltReading] | None = None
+    # a still view's frames as the camera delivered them -> what it does to them
+    camera: Callable[[list[Frame]], CameraInfo] | None = None
 
 
 def expected_holder_px(cfg: AligndConfig) -> tuple[float, float] | None:
@@ -251,8 +268,17 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
         return SideInfo(float(res.tilt_deg), float(res.sample_angle_deg),
                         float(res.pole_angle_deg), float(np.mean(xs)), float(np.mean(xp)))
 
+    def camera(frames: list[Frame]) -> CameraInfo:
+        from alignd.vision.camera_check import check_frames, gamma_text
+        c = check_frames([f.gray for f in frames])  # as delivered: the curve is measured
+        ok = c.gamma == c.gamma  # (NaN: not measured)
+        return CameraInfo(c.gamma if ok else None, c.gamma_u if ok else None,
+                          c.gamma_range if ok else None, gamma_text(c),
+                          [f"{f.what}: {f.advice}" for f in c.findings
+                           if f.level == "act" and f.key != "gamma"], c.to_json())
+
     return Tools(track=track, solve=solve, tilt=tilt, eccentricity=eccentricity,
-                 rim=rim, side=side, tilt_frames=tilt_frames,
+                 rim=rim, side=side, tilt_frames=tilt_frames, camera=camera,
                  names={"track": "alignd.vision.track_holder",
                         "solve": "alignd.solve.solve_centre(auto)",
                         "tilt": "alignd.vision.measure_tilt",
