@@ -209,7 +209,7 @@ def _camera_tool(gamma: float | None, gamma_u: float | None, act: list[str]
 def test_commissioning_checks_the_top_cameras_tone_curve_against_its_config(
         configured: float) -> None:
     """A camera whose frames' noise says gamma 2.2 +- 0.06: with the config at 1 a warning
-    under top.camera that names the key and the value to set; at 2.2 a pass. Either way
+    under top.frames that names the key and the value to set; at 2.2 a pass. Either way
     the rig is commissioned and the check's numbers are in the record."""
     import dataclasses
 
@@ -220,7 +220,7 @@ def test_commissioning_checks_the_top_cameras_tone_curve_against_its_config(
     tools = dataclasses.replace(image_order_tools(2), camera=_camera_tool(2.2, 0.06, []))
     rec = run_commission(rig, cfg, tools=tools, abort=threading.Event())
     assert rec.verdict == "commissioned", rec.reason
-    f = rec.finding("top.camera")
+    f = rec.finding("top.frames")
     assert f is not None and f.value["gamma"] == 2.2 and f.expected == {"gamma": configured}
     if configured == 1.0:
         assert f.verdict == "warn" and f.name == "camera settings"
@@ -228,6 +228,10 @@ def test_commissioning_checks_the_top_cameras_tone_curve_against_its_config(
         assert f.config_fix == {"cameras.top.gamma": 2.2}
     else:
         assert f.verdict == "pass" and f.config_fix is None, f.message
+    # the side camera's frames too, against its own config (gamma 1)
+    side = rec.finding("side.frames")
+    assert side is not None and side.verdict == "warn"
+    assert side.config_fix == {"cameras.side.gamma": 2.2}
 
 
 def test_commissioning_names_a_camera_setting_to_change() -> None:
@@ -240,7 +244,7 @@ def test_commissioning_names_a_camera_setting_to_change() -> None:
            "set its sharpness to the lowest value"
     tools = dataclasses.replace(image_order_tools(2), camera=_camera_tool(None, None, [said]))
     rec = run_commission(rig, cfg, tools=tools, abort=threading.Event())
-    f = rec.finding("top.camera")
+    f = rec.finding("top.frames")
     assert f is not None and f.verdict == "warn" and said in f.message
     assert f.config_fix is None
     assert rec.verdict == "commissioned", rec.reason

@@ -19,7 +19,9 @@ that names the fix (``config_fix``: the config keys to change, where a key can f
   (its edges times that pixel size) against ``holder.size_mm``;
 - side camera: pole and sample found, and which way a positive tilt leans (from a
   translator move);
-- devices: identities, stage models and soft limits against the configured travel.
+- devices: identities, stage models and soft limits against the configured travel;
+- each camera's frames: what the camera does to them (its tone curve against
+  ``cameras[].gamma``, sharpening, coding, clipping), from 8 frames of its still view.
 
 ``align`` and ``check`` use the latest valid record (``CommissionRecord``): the measured
 turntable direction and scale, the runout map, the measured pixel size; it is valid while
@@ -508,13 +510,13 @@ class _Commission:
     def _camera_check(self, role: Literal["top", "side"], cam: Camera, n: int
                       ) -> list[Frame]:
         """``n`` frames of the still view, checked for what the camera does to them
-        (``tools.camera``): a ``<role>.camera`` finding, a warning where a camera setting
+        (``tools.camera``): a ``<role>.frames`` finding, a warning where a camera setting
         should change or the frames' tone curve is not the configured ``gamma`` (the fix
         named). Returns the frames ([] without the tool or when they could not be had)."""
         assert self.tools is not None
         if self.tools.camera is None:
             return []
-        item = f"{role}.camera"
+        item = f"{role}.frames"
         try:
             frames = grab_frames(cam, n, self.abort)
             info = self.tools.camera(frames)
@@ -952,6 +954,7 @@ class _Commission:
             self._add(Finding("side.camera", "warn", "no side measuring function",
                               name="not measured"))
             return
+        self._camera_check("side", side, CAMERA_CHECK_FRAMES)
         try:
             s0 = self.tools.side(grab_fresh(side, side.clock.now()))
         except AligndError as exc:

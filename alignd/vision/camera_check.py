@@ -241,7 +241,9 @@ def _tone_curve(level: np.ndarray, var: np.ndarray, dof: int, bits: int) -> _Cur
     g_best = float(_GAMMAS[k])
     lo, hi = float(within.min()), float(within.max())
     u = max(max(hi - g_best, g_best - lo) / 3.0, 0.02)
-    return _Curve(g_best, u, (min(lo, g_best - 3 * u), max(hi, g_best + 3 * u)), span)
+    g_lo, g_hi = float(_GAMMAS[0]), float(_GAMMAS[-1])  # (the range tried bounds it)
+    return _Curve(g_best, u, (max(min(lo, g_best - 3 * u), g_lo),
+                              min(max(hi, g_best + 3 * u), g_hi)), span)
 
 
 def gamma_text(c: CameraCheck) -> str:
