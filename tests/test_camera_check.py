@@ -114,14 +114,20 @@ def test_jpeg_clipping_and_defective_pixels() -> None:
         g = f.copy()
         g[ys[:30], xs[:30]] = 255
         g[ys[30:], xs[30:]] = 0
-        g[:40, :80] = 255
+        g[:120, :120] = 255  # 1.6 % of the frame
         bad.append(g)
     c = check_frames(bad)
     assert c.defective_pixels >= 55  # (a few may fall where the frame is already near 0/255)
-    assert c.clipped_high > 40 * 80 / (frames[0].size) * 0.99
+    assert c.clipped_high > 120 * 120 / (frames[0].size) * 0.99
     lv = _levels(c.findings)
     assert any(k.endswith("at full scale") and v == "act" for k, v in lv.items())
     assert any("defective pixels" in k for k in lv)
+    # a glint of 0.35 % of the frame at full scale is worth a note, not a new exposure
+    for g in bad:
+        g[:120, :120] = frames[0][:120, :120]
+        g[:40, :80] = 255
+    lv = _levels(check_frames(bad).findings)
+    assert any(k.endswith("at full scale") and v == "note" for k, v in lv.items())
 
 
 def test_frames_of_different_sizes_are_refused() -> None:

@@ -36,7 +36,9 @@ from alignd.vision.jpeg_bias import jpeg_quality
 __all__ = ["CameraCheck", "Finding", "check_frames", "gamma_text"]
 
 _CLIP_HI, _CLIP_LO = 254.5, 0.5  # 8-bit DN of full scale: clipped at or beyond these
-CLIPPED_WARN = 0.001  # a share of pixels clipped above which exposure should come down
+# the share of pixels at full scale worth a note (a glint, a lamp in view), and the one
+# that asks for less exposure
+CLIPPED_NOTE, CLIPPED_ACT = 0.001, 0.01
 # the neighbouring pixels' noise correlation (the mean of along rows and along columns)
 # beyond which the camera filters its frames (raw sensor noise: within +-0.02)
 SHARPENED_CORR = -0.05
@@ -264,12 +266,13 @@ def _findings(c: CameraCheck) -> list[Finding]:
     def add(key: str, level: str, what: str, advice: str = "") -> None:
         out.append(Finding(key, level, what, advice))
 
-    if c.clipped_high > CLIPPED_WARN:
-        add("clipped_high", "act", f"{100 * c.clipped_high:.2f} % of the pixels are at full "
+    if c.clipped_high > CLIPPED_NOTE:
+        add("clipped_high", "act" if c.clipped_high > CLIPPED_ACT else "note",
+            f"{100 * c.clipped_high:.2f} % of the pixels are at full "
             "scale", "lower the exposure or gain until the brightest part of the holder, "
             "disc or sample stays below full scale (a clipped edge is measured from its "
             "unclipped side only)")
-    if c.clipped_low > CLIPPED_WARN:
+    if c.clipped_low > CLIPPED_NOTE:
         add("clipped_low", "note", f"{100 * c.clipped_low:.2f} % of the pixels are at zero",
             "raise the black level or the exposure if the dark parts matter (a dark "
             "holder's face or the floor)")
