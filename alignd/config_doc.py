@@ -116,6 +116,10 @@ def _unit(name: str) -> str:
 
 def _type_name(tp: Any) -> str:
     origin = get_origin(tp)
+    if origin is typing.Annotated:  # a constrained member of a union: its bounds with it
+        base, *meta = get_args(tp)
+        bounds = _bounds_of(meta)
+        return f"{_type_name(base)} ({bounds})" if bounds else _type_name(base)
     if origin is Literal:
         return " \\| ".join(json.dumps(a) for a in get_args(tp))
     if origin in (typing.Union, types.UnionType):
@@ -132,8 +136,15 @@ def _type_name(tp: Any) -> str:
 
 
 def _bounds(info: FieldInfo) -> str:
+    return _bounds_of(info.metadata)
+
+
+def _bounds_of(metadata: list[Any]) -> str:
     parts = []
-    for m in info.metadata:
+    for m in metadata:
+        if isinstance(m, FieldInfo):  # Annotated[..., Field(ge=...)]: its own metadata
+            parts += [p for p in [_bounds_of(m.metadata)] if p]
+            continue
         if isinstance(m, Ge):
             parts.append(f">= {m.ge}")
         elif isinstance(m, Gt):

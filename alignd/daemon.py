@@ -62,6 +62,7 @@ from alignd.store import SqliteRecorder, Store, StoreError, jsonable
 from alignd.web.frames import LiveFrames, grab_previews, tap_cameras
 from drivers.axis import Axis
 from drivers.errors import CameraError
+from drivers.tone_curves import curve_text, is_linear
 
 log = logging.getLogger(__name__)
 
@@ -862,7 +863,8 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
                   + ", ".join(f"{a.role} (address {a.address}, {a.stage or 'no stage'})"
                               for a in c.axes))
         for cam in cfg.cameras:
-            curve = "" if cam.gamma == 1.0 else f" (tone curve: gamma {cam.gamma:g}, undone)"
+            curve = "" if is_linear(cam.gamma) else \
+                f" (tone curve: {curve_text(cam.gamma)}, undone)"
             print(f"  camera {cam.role}: {cam.source}{curve}")
         return EXIT_OK
     if not args.config:

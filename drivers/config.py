@@ -6,7 +6,7 @@ embeds these in the full instrument config; ``alignd-sim`` reads them alone.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -110,6 +110,11 @@ class ControllerConfig(Strict):
         return self
 
 
+# a camera's tone curve: a pure power (1 = linear) or a standard's curve by name
+NamedCurve = Literal["srgb", "bt709"]
+ToneCurve = float | NamedCurve
+
+
 class CameraConfig(Strict):
     """A camera source (contract: camera sources in the design notes)."""
 
@@ -120,12 +125,15 @@ class CameraConfig(Strict):
     exposure: float | None = None
     pixel_size_um: float | None = Field(None, gt=0)
     settle_frames: int = Field(1, ge=0, description="frames discarded after a move")
-    gamma: float = Field(1.0, ge=1.0, le=3.0, description=(
+    gamma: Annotated[float, Field(ge=1.0, le=3.0)] | NamedCurve = Field(1.0, description=(
         "the camera's tone curve: a pixel's value is (light)^(1/gamma) of full scale. 1 = "
         "linear (machine-vision cameras as delivered); about 2.2 for webcams and UVC "
-        "cameras, which encode sRGB-like. alignd undoes it before measuring edges: a gamma "
-        "frame read as linear put corners 0.3 px off (up to 1.7). A simulated camera "
-        "draws its frames with it"))
+        "cameras, which encode sRGB-like; or a standard's curve by name, 'srgb' or "
+        "'bt709' (a straight toe, then a power), where the camera's documentation names "
+        "it. alignd undoes it before measuring edges: a gamma frame read as linear put "
+        "corners 0.3 px off (up to 1.7); BT.709 frames undone as a pure power of 1.9 "
+        "0.049 px, by name 0.037 (linear frames 0.037). A simulated camera draws its "
+        "frames with it"))
 
 
 class FaultConfig(Strict):

@@ -186,3 +186,21 @@ def test_gamma_undoes_a_cameras_tone_curve(tmp_path, capsys) -> None:
     assert off["1"] > 0.15 and off["2.2"] < 0.03
     assert main(["analyze", "top", str(p), "--gamma", "0.45"]) == 2
     assert "--gamma 0.45: the camera's tone curve is within 1-3" in capsys.readouterr().err
+
+
+def test_gamma_takes_a_named_curve(tmp_path, capsys) -> None:
+    """``--gamma bt709``: a BT.709 camera's frame measured by its curve's name; a name
+    that is not a curve is a usage error naming the choices."""
+    w = posed_world(seed=1)
+    opts = RenderOptions(gamma="bt709", blur_sigma_px=1.2)
+    p = tmp_path / "top_bt709.png"
+    cv2.imwrite(str(p), render_top(w.top_scene(), w.top_camera, opts,
+                                   np.random.default_rng(3)))
+    truth = np.asarray(top_truth(w.top_scene(), w.top_camera, opts)["corners_px"])
+    assert main(["analyze", "top", str(p), "--json", "--gamma", "BT709"]) == 0
+    got = np.asarray(_lines(capsys.readouterr().out)[0]["corners_px"])
+    assert float(np.max(np.abs(got - truth))) < 0.03
+    with pytest.raises(SystemExit) as exc:
+        main(["analyze", "top", str(p), "--gamma", "rec709"])
+    assert exc.value.code == 2
+    assert "a number (1-3) or srgb or bt709" in capsys.readouterr().err

@@ -74,10 +74,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="region of the pole (px; default: automatic)")
     g.add_argument("--sample-roi", metavar="X0,Y0,X1,Y1", type=_box,
                    help="region of the sample edge (px; default: automatic)")
-    p.add_argument("--gamma", type=float, default=None,
+    p.add_argument("--gamma", type=_tone_curve, default=None,
                    help="the camera's tone curve, undone before measuring (cameras[].gamma: "
-                        "1 linear, about 2.2 for UVC cameras; default: the config's camera, "
-                        "else 1)")
+                        "1 linear, about 2.2 for UVC cameras, or srgb or bt709; default: the "
+                        "config's camera, else 1)")
     p.add_argument("--config", metavar="FILE",
                    help="take the holder size, the top camera's pixel size and gamma, and "
                         "the side camera's regions and gamma from an alignd config (options "
@@ -125,15 +125,27 @@ def _apply_config(args: argparse.Namespace) -> None:
         seen_by = cfg.camera("side" if args.kind == "side" else "top")
         if args.gamma is None and seen_by is not None:
             args.gamma = seen_by.gamma
-    if args.gamma is not None and not (math.isfinite(args.gamma) and 1.0 <= args.gamma <= 3.0):
+    if isinstance(args.gamma, float) and not (math.isfinite(args.gamma)
+                                              and 1.0 <= args.gamma <= 3.0):
         raise InputError(f"--gamma {args.gamma:g}: the camera's tone curve is within 1-3 (1: "
-                         "linear)")
+                         "linear), or srgb or bt709")
     if args.holder_mm is not None and args.expected_size is None:
         if args.pixel_size_um is None:
             raise InputError("--holder-mm needs --pixel-size-um (or --config)")
         a, b = args.holder_mm
         args.expected_size = (max(a, b) * 1000 / args.pixel_size_um,
                               min(a, b) * 1000 / args.pixel_size_um)
+
+
+def _tone_curve(text: str) -> float | str:
+    """--gamma: a number, or a named curve (drivers.tone_curves)."""
+    if text.lower() in ("srgb", "bt709"):
+        return text.lower()
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: a number (1-3) or srgb or bt709"
+                                         ) from None
 
 
 def _floats(text: str) -> list[float]:

@@ -65,6 +65,8 @@ from alignd.procedures.sweep import (
 )
 from alignd.procedures.tools import Tools, default_tools
 from drivers.camera import Camera, Frame
+from drivers.config import ToneCurve
+from drivers.tone_curves import curve_text, effective_powers
 
 log = logging.getLogger(__name__)
 
@@ -525,18 +527,19 @@ class _Commission:
                               name="not measured"))
             return []
         cfg_cam = self.cfg.camera(role)
-        configured = cfg_cam.gamma if cfg_cam is not None else 1.0
+        configured: ToneCurve = cfg_cam.gamma if cfg_cam is not None else 1.0
         said = list(info.act)
         fix = None
         g, allowed = info.gamma, info.gamma_range
-        if g is not None and allowed is not None and not (
-                allowed[0] - GAMMA_SLACK <= configured <= allowed[1] + GAMMA_SLACK):
+        lo, hi = effective_powers(configured)  # (a named curve looks like a range of powers)
+        if g is not None and allowed is not None and (
+                hi < allowed[0] - GAMMA_SLACK or lo > allowed[1] + GAMMA_SLACK):
             said.append(f"the frames' noise says the camera's tone curve is {info.text}, "
-                        f"the config says gamma {configured:g}: measure it (docs/configure.md, "
-                        f"two exposures) and set cameras[{role}].gamma")
+                        f"the config says {curve_text(configured)}: measure it "
+                        f"(docs/configure.md, two exposures) and set cameras[{role}].gamma")
             fix = {f"cameras.{role}.gamma": round(g, 1)}
         message = "; ".join(said) if said else (
-            f"tone curve {info.text} (config: gamma {configured:g}); no setting to change")
+            f"tone curve {info.text} (config: {curve_text(configured)}); no setting to change")
         self._add(Finding(item, "warn" if said else "pass", f"{len(frames)} frames of a still "
                           f"view: {message}", value=info.record, sigma={"gamma": info.gamma_u},
                           expected={"gamma": configured}, config_fix=fix,

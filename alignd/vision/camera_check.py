@@ -323,7 +323,8 @@ def _findings(c: CameraCheck) -> list[Finding]:
     elif lo > GAMMA_LINEAR:
         add("gamma", "act", f"the camera applies a tone curve: {gamma_text(c)}{rough}",
             f"set the camera's gamma to 1 (linear) if it can, else set cameras[].gamma to "
-            f"{g:.1f} (better: {two})")
+            f"{g:.1f}, or to srgb or bt709 where the camera's documentation names its curve "
+            f"(better than the number: {two})")
     elif hi < GAMMA_LINEAR:
         add("gamma", "ok", f"linear ({gamma_text(c)}){rough}")
     else:

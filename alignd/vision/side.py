@@ -38,6 +38,8 @@ from alignd.vision.edges import (
     linearise,
 )
 from alignd.vision.jpeg_bias import EdgeBias, edge_angle_bias, jpeg_quality
+from drivers.config import ToneCurve
+from drivers.tone_curves import is_linear
 
 SIGN_CONVENTION = ("angles in deg from the image vertical, positive when the line's top leans "
                    "toward +x (clockwise on screen, the top camera's x-toward-y sense); "
@@ -666,7 +668,7 @@ def measure_tilt_frames(images: list[np.ndarray], *,
                         sample_roi_px: tuple[int, int, int, int] | None = None,
                         more: Callable[[int], list[np.ndarray]] | None = None,
                         u_target_deg: float | None = None, max_frames: int | None = None,
-                        gamma: float = 1.0) -> TiltAverage:
+                        gamma: ToneCurve = 1.0) -> TiltAverage:
     """The tilt from several frames of the same view (the pre-check's measurement): the
     first frame is measured as :func:`measure_tilt` does, the others track its edges (a
     full search again where an edge is not where it was). From 3 frames on, 8-bit grey
@@ -691,7 +693,7 @@ def measure_tilt_frames(images: list[np.ndarray], *,
     # so does the stall rule below
     quality = (_coded_quality(images[0], first) if len(images) >= 3 or more is not None
                else None)
-    if quality is not None and gamma != 1.0:
+    if quality is not None and not is_linear(gamma):
         gamma = 1.0
         first = measure_tilt(images[0], pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px)
     frames = [first]

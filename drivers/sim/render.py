@@ -29,9 +29,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from drivers.config import SimWorldConfig
+from drivers.config import SimWorldConfig, ToneCurve
 from drivers.sim.clock import ManualClock
 from drivers.sim.world import PinholeCamera, SideScene, TopScene, World
+from drivers.tone_curves import encode, is_linear
 
 __all__ = [
     "Conic",
@@ -89,8 +90,8 @@ class RenderOptions:
     electrons_per_dn: float = 0.0  # > 0 adds shot noise with variance signal / electrons_per_dn
     quantize: bool = True
     # the camera's tone curve: out = 255 (light / 255)^(1 / gamma), after the noise (1 =
-    # linear; UVC cameras encode about 2.2)
-    gamma: float = 1.0
+    # linear; UVC cameras encode about 2.2), or a named one ("srgb", "bt709")
+    gamma: ToneCurve = 1.0
     blur_sigma_px: float = 0.6  # defocus, Gaussian sigma; 0 = sharp
     # illumination
     gradient: tuple[float, float] = (0.0, 0.0)  # relative light change across width, height
@@ -377,11 +378,12 @@ def finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
     return _finish(img, opts, rng)
 
 
-def tone_curve(img: np.ndarray, gamma: float, full: float = 255.0) -> np.ndarray:
+def tone_curve(img: np.ndarray, gamma: ToneCurve, full: float = 255.0) -> np.ndarray:
     """A camera's tone curve on light ``img`` (float, DN of ``full`` scale): full (light /
-    full)^(1 / gamma), float32 (negative light, from noise, is taken as none)."""
+    full)^(1 / gamma), or a named curve's values (:mod:`drivers.tone_curves`), float32
+    (negative light, from noise, is taken as none)."""
     f = np.float32(full)
-    return (f * (np.clip(img, 0, None) / f) ** np.float32(1.0 / gamma)).astype(np.float32)
+    return (f * encode(np.asarray(img, np.float32) / f, gamma)).astype(np.float32)
 
 
 def _finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
@@ -417,7 +419,7 @@ def _finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | Non
         else:
             noise *= np.float32(opts.read_noise_dn)
         img += noise
-    if opts.gamma != 1.0:
+    if not is_linear(opts.gamma):
         img = tone_curve(img, opts.gamma)
     if opts.quantize:
         np.rint(img, out=img)

@@ -41,7 +41,9 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from drivers.config import ToneCurve
 from drivers.sim.render import Conic, Polygon, Raster, coverage, tone_curve
+from drivers.tone_curves import is_linear
 
 __all__ = [
     "RIM_CATEGORIES",
@@ -75,7 +77,8 @@ class Encoding:
     bits: Literal[8, 12] = 8
     msb_aligned: bool = False  # 12-bit values shifted into the top of 16 bits
     jpeg_quality: int | None = None
-    gamma: float = 1.0  # the tone curve: values (light)^(1/gamma) of full scale, before coding
+    gamma: ToneCurve = 1.0  # the tone curve: values (light)^(1/gamma) of full scale, or a
+    # named one (drivers.tone_curves), before coding
 
 
 @dataclass(frozen=True)
@@ -280,7 +283,7 @@ def _finish(img: np.ndarray, rng: np.random.Generator, *, blur: float, read_nois
     var = np.float32((read_noise * scale) ** 2) + np.clip(img, 0, None) * np.float32(
         scale / electrons_per_dn)
     img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.sqrt(var)
-    if enc.gamma != 1.0:
+    if not is_linear(enc.gamma):
         img = tone_curve(img, enc.gamma, 4095.0 if enc.bits == 12 else 255.0)
     np.rint(img, out=img)
     if enc.bits == 12:
@@ -700,7 +703,7 @@ def _wide(poly: np.ndarray, ss: int) -> Polygon:
 
 def random_side_scene(rng: np.random.Generator, category: str | None = None,
                       size_px: tuple[int, int] = (1280, 720), frames: int = 1,
-                      gamma: float = 1.0) -> SideSceneSample:
+                      gamma: ToneCurve = 1.0) -> SideSceneSample:
     """One randomised side-camera view (see the module docstring); ``frames`` > 1 adds
     further frames of the same view with independent noise, as a camera streams them
     (``SideSceneSample.frames``). ``gamma``: the camera's tone curve, applied before the

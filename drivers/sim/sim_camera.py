@@ -11,9 +11,11 @@ import numpy as np
 
 from drivers.camera import Camera, Frame
 from drivers.clock import SYSTEM_CLOCK, Clock
+from drivers.config import ToneCurve
 from drivers.sim import render
 from drivers.sim.clock import ScaledClock
 from drivers.sim.world import World
+from drivers.tone_curves import is_linear
 
 BLUR_STEP_PX = 0.25  # sub-exposures are rendered this far apart along the fastest corner
 MAX_SUBFRAMES = 24
@@ -35,7 +37,7 @@ class SimCamera(Camera):
     def __init__(self, world: World, role: Literal["top", "side"], *,
                  opts: render.RenderOptions | None = None, seed: int = 0,
                  lock: threading.Lock | None = None, clock: Clock | None = None,
-                 exposure_s: float = 0.0, gamma: float = 1.0) -> None:
+                 exposure_s: float = 0.0, gamma: ToneCurve = 1.0) -> None:
         super().__init__(f"{role}-camera", f"sim:{role}")
         self.world = world
         self.role = role
@@ -44,7 +46,7 @@ class SimCamera(Camera):
             if world.cfg.holder_dn is not None:
                 opts = dataclasses.replace(opts, holder_dn=world.cfg.holder_dn)
         # the camera's tone curve (the camera config's gamma) over the options' own
-        self.opts = opts if gamma == 1.0 else dataclasses.replace(opts, gamma=gamma)
+        self.opts = opts if is_linear(gamma) else dataclasses.replace(opts, gamma=gamma)
         self.rng = np.random.default_rng(seed)
         self.lock = lock or threading.Lock()
         self.clock = clock or SYSTEM_CLOCK
