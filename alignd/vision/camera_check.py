@@ -115,27 +115,48 @@ def check_frames(frames: Sequence[np.ndarray]) -> CameraCheck:
     raw = [np.asarray(f) for f in frames]
     if any(f.shape != raw[0].shape for f in raw):
         raise VisionError("camera check: the frames differ in size (not one camera's view)")
-    grays = [as_gray(f, "camera frame") for f in raw]
+    # frame by frame, each frame's float copy made when it is read (a 5 Mpx camera's 8
+    # frames as one float stack with its residuals took 0.6 GB)
+    grays = _Grays(raw)
     h, w = grays[0].shape
     bits = 8 if raw[0].dtype == np.uint8 else round(math.log2(
         max(sensor_full_scale(f) for f in raw) + 1))
-    stack = np.stack(grays)
-    hi, lo = stack >= _CLIP_HI, stack <= _CLIP_LO
     quality = jpeg_quality(grays[0]) if raw[0].dtype == np.uint8 else None
-    masks = np.stack([speck_mask(g) > 0 for g in grays])
-    specks = float(masks.sum(axis=(1, 2)).mean())
-    defective = int(np.all(masks, axis=0).sum()) if len(grays) >= 2 else 0
+    bad = np.zeros((h, w), bool)  # clipped or a speck in any frame: left out of the noise
+    every = np.ones((h, w), bool)  # a speck in every frame: a defective pixel
+    n_hi = n_lo = n_specks = 0
+    for g in grays:
+        hi, lo, sp = g >= _CLIP_HI, g <= _CLIP_LO, speck_mask(g) > 0
+        n_hi, n_lo, n_specks = n_hi + int(hi.sum()), n_lo + int(lo.sum()), n_specks + int(
+            sp.sum())
+        bad |= hi | lo | sp
+        every &= sp
+    n = len(grays)
+    defective = int(every.sum()) if n >= 2 else 0
     noise, corr = math.nan, (math.nan, math.nan)
     nan2 = (math.nan, math.nan)
     curve = _Curve(math.nan, math.nan, nan2, nan2)
-    if len(grays) >= 2:
-        noise, corr, curve = _noise(stack, hi | lo | masks, bits)
+    if n >= 2:
+        noise, corr, curve = _noise(grays, ~bad, bits)
         if quality is not None:  # the coding reshapes the noise: no tone curve read from it
             curve = _Curve(math.nan, math.nan, nan2, curve.span)
-    check = CameraCheck(len(grays), (w, h), bits, float(hi.mean()), float(lo.mean()),
-                        quality, specks, defective, noise, corr, curve.gamma, curve.u,
+    check = CameraCheck(n, (w, h), bits, n_hi / (n * h * w), n_lo / (n * h * w), quality,
+                        n_specks / n, defective, noise, corr, curve.gamma, curve.u,
                         curve.allowed, curve.span)
     return replace(check, findings=_findings(check))
+
+
+class _Grays(Sequence[np.ndarray]):
+    """The frames in 8-bit DN of full scale (float32), each converted when read."""
+
+    def __init__(self, raw: list[np.ndarray]) -> None:
+        self.raw = raw
+
+    def __len__(self) -> int:
+        return len(self.raw)
+
+    def __getitem__(self, k: int) -> np.ndarray:  # type: ignore[override]
+        return as_gray(self.raw[k], "camera frame")
 
 
 @dataclass(frozen=True)
@@ -146,31 +167,45 @@ class _Curve:
     span: tuple[float, float]
 
 
-def _noise(stack: np.ndarray, bad: np.ndarray, bits: int
+_FIT_PX = 1_000_000  # pixels the tone curve's fit reads at most (an even sample beyond)
+
+
+def _noise(grays: Sequence[np.ndarray], keep: np.ndarray, bits: int
            ) -> tuple[float, tuple[float, float], _Curve]:
     """The temporal noise (RMS, DN), its neighbours' correlation along rows and columns,
     and the tone curve fitted to its level dependence, from frames of a still view
-    (``bad``: clipped pixels and specks, left out)."""
-    n = stack.shape[0]
-    keep = ~np.any(bad, axis=0)
+    (``keep``: the pixels neither clipped nor a speck in any frame)."""
+    n = len(grays)
     # a flickering light scales whole frames: each frame brought to the mean frame's level
-    means = np.array([float(f[keep].mean()) for f in stack])
-    stack = stack * (means.mean() / np.maximum(means, 1e-6))[:, None, None]
-    mean = stack.mean(axis=0)
-    res = stack - mean[None]
-    var = (res * res).sum(axis=0) / (n - 1)
-    noise = math.sqrt(float(np.median(var[keep])) / _median_scale(n - 1))
+    means = np.array([float(g[keep].mean()) for g in grays])
+    scale = (means.mean() / np.maximum(means, 1e-6)).astype(np.float32)
+    mean = np.zeros(keep.shape, np.float32)
+    for g, k in zip(grays, scale, strict=True):
+        mean += g * k
+    mean /= np.float32(n)
+    var = np.zeros(keep.shape, np.float32)
     # the correlation of each pixel's residual with its right and its lower neighbour's
     # (the residuals about the frames' mean have the noise's correlation)
     both_r = keep[:, 1:] & keep[:, :-1]
     both_c = keep[1:, :] & keep[:-1, :]
-    ss = float((res * res)[:, keep].sum()) / max(int(keep.sum()), 1)
-    cr = float((res[:, :, 1:] * res[:, :, :-1])[:, both_r].sum()) / max(int(both_r.sum()), 1)
-    cc = float((res[:, 1:, :] * res[:, :-1, :])[:, both_c].sum()) / max(int(both_c.sum()), 1)
+    cr = cc = 0.0
+    for g, k in zip(grays, scale, strict=True):
+        r = g * k - mean
+        var += r * r
+        cr += float((r[:, 1:] * r[:, :-1])[both_r].sum())
+        cc += float((r[1:, :] * r[:-1, :])[both_c].sum())
+    n_keep = max(int(keep.sum()), 1)
+    ss = float(var[keep].sum()) / n_keep
+    var /= n - 1
+    noise = math.sqrt(float(np.median(var[keep])) / _median_scale(n - 1))
+    cr /= max(int(both_r.sum()), 1)
+    cc /= max(int(both_c.sum()), 1)
     # (the rounding to whole DN adds white noise after any filter: not the camera's)
     ss -= (1.0 - 1.0 / n) * _rounding_var(bits)
     corr = (cr / ss, cc / ss) if ss > 0 else (math.nan, math.nan)
-    return noise, corr, _tone_curve(mean[keep], var[keep], n - 1, bits)
+    step = max(n_keep // _FIT_PX, 1)
+    levels, variances = mean[keep][::step], var[keep][::step]
+    return noise, corr, _tone_curve(levels, variances, n - 1, bits)
 
 
 def _rounding_var(bits: int) -> float:
