@@ -11,7 +11,9 @@ temporal noise as the probe: what the camera does to the noise it does to the ed
   grows with the level (shot noise) or stays flat (read noise); a curve v = 255 (L /
   255)^(1/gamma) compresses the bright levels' noise, so the variance falls as the level
   rises. The fit of var(v) = (r^2 + L / g) / (dL/dv)^2 over the levels gives gamma (the
-  photon transfer method of EMVA 1288, in the coded domain).
+  photon transfer method of EMVA 1288, in the coded domain), with the range of gammas
+  the noise allows: flat noise is a linear camera's read noise or a gamma 2 camera's
+  shot noise alike, and then the range holds both.
 - The noise's **correlation between neighbouring pixels** gives the spatial processing:
   raw sensor noise is white (correlation 0), sharpening makes neighbours anti-correlated,
   noise reduction, demosaicing and JPEG make them correlated.
@@ -40,11 +42,12 @@ _CLIP_HI, _CLIP_LO = 254.5, 0.5  # 8-bit DN of full scale: clipped at or beyond 
 # that asks for less exposure
 CLIPPED_NOTE, CLIPPED_ACT = 0.001, 0.01
 # the neighbouring pixels' noise correlation (the mean of along rows and along columns)
-# beyond which the camera filters its frames (raw sensor noise: within +-0.02)
+# beyond which the camera filters its frames (raw sensor noise: within +-0.005 on the
+# corpus; unsharp mask amount 1 radius 1 px: -0.09; noise reduction, JPEG: +0.4 to +0.7)
 SHARPENED_CORR = -0.05
 SMOOTHED_CORR = 0.15
 _GAMMAS = np.round(np.arange(0.8, 3.2001, 0.01), 2)  # the tone curves tried
-GAMMA_LINEAR = 1.2  # a fitted gamma below this (within its uncertainty) reads as linear
+GAMMA_LINEAR = 1.2  # the range the noise allows wholly below this: linear; above: a curve
 _BIN_DN = 4.0  # the levels' bins (8-bit DN)
 _MIN_BIN_PX = 300  # pixels a bin needs to count
 _LEVELS_MIN, _LEVELS_MAX = 6.0, 248.0  # the levels fitted (clipping bends the noise beyond)
@@ -108,8 +111,9 @@ def check_frames(frames: Sequence[np.ndarray]) -> CameraCheck:
     """Read what the camera does to its frames from ``frames`` of one still view (8- or
     16-bit grey or BGR, as the camera delivers them: not linearised). One frame gives
     the clipping, the specks and the JPEG quality; the noise, its correlation and the
-    tone curve need two or more (8 give gamma to about +-0.1 on a view with levels over
-    100 DN apart). Raises VisionError on frames that are not one view's."""
+    tone curve need two or more (8 frames of the corpus's side views, levels 100 DN and
+    more apart: gamma to +-0.1 or better on about half of them, 0.03-0.04 RMS there).
+    Raises VisionError on frames that are not one view's."""
     if len(frames) == 0:
         raise VisionError("camera check: no frames")
     raw = [np.asarray(f) for f in frames]
