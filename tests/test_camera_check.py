@@ -179,3 +179,44 @@ def test_noise_that_does_not_change_with_the_level_is_not_told() -> None:
     curve = [f for f in c.findings if f.key == "gamma"]
     assert len(curve) == 1 and curve[0].level == "note" and "not told apart" in curve[0].what
     assert f"gamma {lo:.1f}-{hi:.1f}" in curve[0].what
+
+
+def _lag1_of_filtered_white_noise(amount: float, radius: float) -> float:
+    """The correlation of neighbouring pixels (along a row) of white noise after an
+    unsharp mask: sum k(x, y) k(x + 1, y) / sum k^2 over the filter's kernel k (its
+    impulse response, from the same OpenCV blur the frames went through)."""
+    d = np.zeros((31, 31), np.float32)
+    d[15, 15] = 1.0
+    k = (1 + amount) * d - amount * cv2.GaussianBlur(d, (0, 0), radius)
+    k = k.astype(float)
+    return float((k[:, 1:] * k[:, :-1]).sum() / (k * k).sum())
+
+
+@pytest.mark.parametrize("amount,radius", [(0.5, 0.8), (1.0, 1.0), (2.0, 1.5)])
+def test_the_noise_correlation_is_the_filters_own(amount: float, radius: float) -> None:
+    """Sharpened frames: the correlation the check reads is the one the filter's kernel
+    gives white noise (within 0.003: the estimator, the rounding's white share taken off,
+    checked against the kernel's arithmetic)."""
+    expected = _lag1_of_filtered_white_noise(amount, radius)
+    c = check_frames([_sharpen(f, amount, radius) for f in _top_frames(1.0)])
+    assert c.noise_correlation[0] == pytest.approx(expected, abs=0.003)
+    assert c.noise_correlation[1] == pytest.approx(expected, abs=0.003)
+    assert any(f.key == "sharpened" and f.level == "act" for f in c.findings)
+
+
+def test_alignctl_analyze_camera_reads_12_bit_frames(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]
+                                                      ) -> None:
+    """A 12-bit camera's frames saved as 16-bit PNGs (the corpus's 12-bit side view, seed
+    5, index 4): read at 12 bits, and its gamma 2.2 curve found."""
+    names = []
+    for k, f in enumerate(_side_frames(2.2, 4)):
+        assert f.dtype == np.uint16
+        p = tmp_path / f"side_{k}.png"
+        cv2.imwrite(str(p), f)
+        names.append(str(p))
+    assert alignctl_main(["analyze", "camera", *names, "--json"]) == 0
+    obj = json.loads(capsys.readouterr().out.strip())
+    assert obj["bits"] == 12 and obj["jpeg_quality"] is None
+    assert obj["gamma"] == pytest.approx(2.2, abs=0.1)
+    assert any(f["key"] == "gamma" and f["level"] == "act" for f in obj["findings"])
