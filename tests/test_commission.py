@@ -274,3 +274,24 @@ def test_the_daemons_camera_tool_reads_a_simulated_cameras_curve() -> None:
         assert isinstance(findings, list)
         curve = [f for f in findings if f["key"] == "gamma"]
         assert (curve[0]["level"] == "act") == (gamma > 1)
+
+
+def test_an_abort_during_the_camera_check_aborts_the_commission() -> None:
+    """The operator's abort while the camera check runs ends the run as aborted (it is
+    not taken for a camera that could not be checked)."""
+    import dataclasses
+
+    from alignd.procedures.rig import AbortRequested
+
+    cfg = sim_config()
+    rig, _world = scene_rig(cfg, 2)
+    abort = threading.Event()
+
+    def camera(frames: list[Frame]) -> CameraInfo:
+        abort.set()
+        raise AbortRequested("abort requested")
+
+    tools = dataclasses.replace(image_order_tools(2), camera=camera)
+    rec = run_commission(rig, cfg, tools=tools, abort=abort)
+    assert rec.verdict == "aborted", rec.reason
+    assert rec.finding("top.frames") is None

@@ -488,6 +488,8 @@ class _Commission:
             frames = still[:pc.rim_frames] if still and not pc.rim_turn_deg else \
                 grab_rim_frames(self.rig, cam, pc.rim_frames, pc.rim_turn_deg, self.abort)
             info = self.tools.rim(frames, self.c.rim_radius_mm, self.c.top_camera_height_mm)
+        except AbortRequested:
+            raise
         except AligndError as exc:
             self._add(Finding("top.rim", "warn", f"rim not measurable: {exc}",
                               name="not measured"))
@@ -522,6 +524,8 @@ class _Commission:
         try:
             frames = grab_frames(cam, n, self.abort)
             info = self.tools.camera(frames)
+        except AbortRequested:
+            raise
         except AligndError as exc:
             self._add(Finding(item, "warn", f"{role} camera not checked: {exc}",
                               name="not measured"))
