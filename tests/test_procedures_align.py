@@ -590,3 +590,31 @@ def test_a_sweep_whose_frames_carry_the_trackers_warning_says_so_once() -> None:
     assert head.endswith("sweep 1") and "top camera, " in sweeps[0]
     k, n = (int(v) for v in sweeps[0].split("top camera, ")[1].split(" frame")[0].split(" of "))
     assert 0 < k < n
+
+
+@pytest.mark.parametrize("during", ["eccentricity", "tilt"])
+def test_abort_during_a_pre_checks_frames_is_an_abort(during: str) -> None:
+    """The operator's abort while the pre-check grabs its rim or side frames ends the run
+    as aborted, not as a pre-check that could not measure (with action refuse: a
+    fault)."""
+    import dataclasses
+
+    from alignd.procedures.tools import RimInfo, TiltReading
+
+    base = sim_config()
+    cfg = sim_config(precheck=base.procedure.precheck.model_copy(update={"action": "refuse"}))
+    rig, _ = scene_rig(cfg, 4)
+    abort = threading.Event()
+
+    def progress(ev: ProgressEvent) -> None:
+        if ev.phase == "precheck" and during in ev.message:
+            abort.set()  # as the frames are being grabbed
+
+    tools = dataclasses.replace(
+        standin_tools(4),
+        rim=lambda frames, r, h: RimInfo((0.0, 0.0), 0.01, None, 0.001),
+        tilt_frames=lambda frames, more: TiltReading(0.0, None, len(frames)))
+    if during == "eccentricity":  # no side pre-check after it, whose own look would see it
+        tools = dataclasses.replace(tools, tilt=None, tilt_frames=None)
+    res = run_alignment(rig, cfg, tools=tools, progress=progress, abort=abort)
+    assert res.verdict == "aborted", res.reason

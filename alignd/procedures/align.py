@@ -625,6 +625,8 @@ class _Run:
                 if e > pc.max_eccentricity:
                     problems.append(("fault", f"top-camera eccentricity {e:.3f} exceeds "
                                      f"{pc.max_eccentricity:g} (camera not on the axis)"))
+            except AbortRequested:
+                raise
             except AligndError as exc:
                 problems.append(("fault", f"top-camera eccentricity not measurable: {exc}"))
         side = self.rig.camera("side")
@@ -642,6 +644,8 @@ class _Run:
                     problems.append(("out_of_tolerance",
                                      f"sample tilt {self.st.tilt_deg:+.3f} deg exceeds "
                                      f"{pc.max_tilt_deg:g} deg"))
+            except AbortRequested:
+                raise
             except AligndError as exc:
                 problems.append(("fault", f"side-camera tilt not measurable: {exc}"))
         for verdict, msg in problems:
