@@ -9,7 +9,7 @@ import numpy as np
 
 from drivers.config import ToneCurve
 
-__all__ = ["curve_text", "decode", "effective_powers", "encode", "is_linear"]
+__all__ = ["curve_text", "decode", "disagrees", "effective_powers", "encode", "is_linear"]
 
 # (slope of the toe, the light where it ends, the power's a and exponent): above the toe
 # v = (1 + a) L^exponent - a. sRGB: IEC 61966-2-1; BT.709: ITU-R BT.709-6 (its OETF)
@@ -32,6 +32,16 @@ def effective_powers(curve: ToneCurve) -> tuple[float, float]:
     if isinstance(curve, str):
         return _EFFECTIVE[curve]
     return (curve, curve)
+
+
+GAMMA_SLACK = 0.1  # a configured curve this far outside what the frames allow disagrees
+
+
+def disagrees(configured: ToneCurve, allowed: tuple[float, float]) -> bool:
+    """Whether a configured curve lies outside the range of pure powers a camera's frames
+    allow (by more than GAMMA_SLACK; a named curve counts as its range of powers)."""
+    lo, hi = effective_powers(configured)
+    return hi < allowed[0] - GAMMA_SLACK or lo > allowed[1] + GAMMA_SLACK
 
 
 def curve_text(curve: ToneCurve) -> str:

@@ -220,3 +220,34 @@ def test_alignctl_analyze_camera_reads_12_bit_frames(tmp_path: Path,
     assert obj["bits"] == 12 and obj["jpeg_quality"] is None
     assert obj["gamma"] == pytest.approx(2.2, abs=0.1)
     assert any(f["key"] == "gamma" and f["level"] == "act" for f in obj["findings"])
+
+
+def test_alignctl_analyze_camera_holds_the_frames_against_a_config(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """With --config, a camera whose frames say gamma 2.2 against a config that says 1
+    (the reference sim config) gets an act line naming the key; with the config at 2.2,
+    none."""
+    import yaml
+
+    names = []
+    for k, f in enumerate(_side_frames(2.2, 2)):  # an uneven-light view, 8-bit
+        p = tmp_path / f"side_{k}.png"
+        cv2.imwrite(str(p), f)
+        names.append(str(p))
+    cfg = Path("configs/sim.yaml")
+    assert alignctl_main(["analyze", "camera", *names, "--json", "--config", str(cfg),
+                          "--role", "side"]) == 0
+    obj = json.loads(capsys.readouterr().out.strip())
+    said = [f for f in obj["findings"] if f["key"] == "config_gamma"]
+    assert len(said) == 1 and said[0]["level"] == "act"
+    assert "says gamma 1 for the side camera" in said[0]["what"]
+    assert "cameras[side].gamma" in said[0]["advice"]
+    data = yaml.safe_load(cfg.read_text())
+    for cam in data["cameras"]:
+        cam["gamma"] = 2.2
+    other = tmp_path / "gamma.yaml"
+    other.write_text(yaml.safe_dump(data))
+    assert alignctl_main(["analyze", "camera", *names, "--json", "--config", str(other),
+                          "--role", "side"]) == 0
+    obj = json.loads(capsys.readouterr().out.strip())
+    assert not [f for f in obj["findings"] if f["key"] == "config_gamma"]

@@ -21,6 +21,7 @@ one error (exit code 2).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import re
@@ -78,6 +79,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the camera's tone curve, undone before measuring (cameras[].gamma: "
                         "1 linear, about 2.2 for UVC cameras, or srgb or bt709; default: the "
                         "config's camera, else 1)")
+    p.add_argument("--role", choices=["top", "side"], default="top",
+                   help="camera: whose config gamma (with --config) the frames are held "
+                        "against (default top)")
     p.add_argument("--config", metavar="FILE",
                    help="take the holder size, the top camera's pixel size and gamma, and "
                         "the side camera's regions and gamma from an alignd config (options "
@@ -262,7 +266,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--mean applies to 'analyze side' and 'analyze rim' (a top sweep's "
                          "frames are at different angles: --sweep-out)")
     if args.kind == "camera":
-        return _check_camera(list(args.images), args.json)
+        return _check_camera(list(args.images), args.json, args.config, args.role)
     _apply_config(args)
     if args.mean:
         try:
@@ -317,12 +321,24 @@ def run(args: argparse.Namespace) -> int:
     return status
 
 
-def _check_camera(names: list[str], as_json: bool) -> int:
-    """``analyze camera``: one check of all the frames (vision.camera_check)."""
+def _check_camera(names: list[str], as_json: bool, config: str | None, role: str) -> int:
+    """``analyze camera``: one check of all the frames (vision.camera_check); with a
+    config, its ``role`` camera's gamma held against what the frames allow."""
     from alignd.cli import EXIT_OK, EXIT_USAGE
-    from alignd.vision.camera_check import check_frames, gamma_text
+    from alignd.vision.camera_check import Finding, check_frames, gamma_text
+    from drivers.tone_curves import curve_text, disagrees
     try:
         c = check_frames([read_image(n) for n in names])
+        if config:
+            from alignd.config import load_config
+            cam = load_config(config).camera(role)
+            configured = cam.gamma if cam is not None else 1.0
+            if math.isfinite(c.gamma) and disagrees(configured, c.gamma_range):
+                said = Finding("config_gamma", "act", f"{config} says "
+                               f"{curve_text(configured)} for the {role} camera, its frames "
+                               f"{gamma_text(c)}", f"set cameras[{role}].gamma (measure it "
+                               "with two exposures, docs/configure.md)")
+                c = dataclasses.replace(c, findings=[said, *c.findings])
     except (InputError, VisionError) as exc:
         print(f"alignctl analyze: error: {exc}", file=sys.stderr)
         if as_json:

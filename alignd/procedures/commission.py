@@ -66,7 +66,7 @@ from alignd.procedures.sweep import (
 from alignd.procedures.tools import Tools, default_tools
 from drivers.camera import Camera, Frame
 from drivers.config import ToneCurve
-from drivers.tone_curves import curve_text, effective_powers
+from drivers.tone_curves import curve_text, disagrees
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +82,6 @@ ROLE_CONE_DEG = 30.0  # a role moving within this of an axis of the holder frame
 SECOND_ANGLE_DEG = 90.0
 MAX_TURN_DISAGREE_DEG = 1.0  # stage directions at two table angles, turned back, must agree
 CAMERA_CHECK_FRAMES = 8  # a still view's frames for what the camera does (its tone curve)
-GAMMA_SLACK = 0.1  # a configured gamma this far outside the range the noise allows warns
 
 
 @runtime_checkable
@@ -535,9 +534,7 @@ class _Commission:
         said = list(info.act)
         fix = None
         g, allowed = info.gamma, info.gamma_range
-        lo, hi = effective_powers(configured)  # (a named curve looks like a range of powers)
-        if g is not None and allowed is not None and (
-                hi < allowed[0] - GAMMA_SLACK or lo > allowed[1] + GAMMA_SLACK):
+        if g is not None and allowed is not None and disagrees(configured, allowed):
             said.append(f"the frames' noise says the camera's tone curve is {info.text}, "
                         f"the config says {curve_text(configured)}: measure it "
                         f"(docs/configure.md, two exposures) and set cameras[{role}].gamma")

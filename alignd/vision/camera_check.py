@@ -57,7 +57,7 @@ MIN_LEVEL_SPAN = 60.0  # DN between the darkest and brightest level fitted, for 
 
 @dataclass(frozen=True)
 class Finding:
-    """One thing the check found: ``key`` which (clipped_high, clipped_low, jpeg,
+    """One thing the check found: ``key`` which (clipped_high, clipped_low, jpeg, config_gamma,
     defective_pixels, specks, frames, sharpened, smoothed, gamma), ``level`` "ok", "note"
     (worth knowing) or "act" (change a camera setting or alignd's config), what was seen,
     and what to do."""
