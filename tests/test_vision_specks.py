@@ -64,10 +64,13 @@ def _corpus_rms(n: int, share: float) -> float:
 
 
 def test_corpus_holders_with_hot_and_dead_pixels(monkeypatch) -> None:
+    """0.1 % specks on 16 corpus scenes: corner RMS 0.0276 px clean, 0.0285 despeckled,
+    0.0343 left in (0.0379 before a penumbra was fitted with its edge and the blur's
+    spread of a slope modelled)."""
     clean = _corpus_rms(16, 0.0)
     assert _corpus_rms(16, 0.001) <= 1.1 * clean
     monkeypatch.setattr(holder, "despeckle", lambda gray: gray)
-    assert _corpus_rms(16, 0.001) > 1.3 * clean  # what they did before
+    assert _corpus_rms(16, 0.001) > 1.2 * clean  # what they did before
 
 
 def test_tracking_despeckles_around_the_previous_corners() -> None:

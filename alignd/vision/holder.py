@@ -57,7 +57,7 @@ from alignd.vision.holder_neighbours import neighbour_steps, without_neighbours
 from alignd.vision.holder_search import search_candidates
 from alignd.vision.holder_steps import inner_step, side_frame
 from alignd.vision.lens import Lens
-from alignd.vision.profile_fit import fit_crossings_blur
+from alignd.vision.profile_fit import fit_profiles
 
 __all__ = ["HolderDetection", "YawMeasurement", "measure_yaw", "order_corners", "track_holder"]
 
@@ -238,14 +238,17 @@ def _ideal(pts: EdgePoints, lens: Lens | None) -> EdgePoints:
 def _profile_sides(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
                    half_width: int, margin: float, lens: Lens | None = None,
                    blur: np.ndarray | None = None
-                   ) -> tuple[list[tuple[Line | None, EdgePoints]], np.ndarray]:
+                   ) -> tuple[list[tuple[Line | None, EdgePoints]], np.ndarray, float]:
     """The area method's crossings (``margin`` px short of the corners) refined by the
-    profile fit, which reaches nearer the corners, their lines and each side's blur
-    (``blur``: known widths, see :func:`fit_crossings_blur`)."""
-    fine, widths = fit_crossings_blur(gray, [pts for _ln, pts in sides],
-                                      half_width=half_width, blur=blur,
-                                      corner_gap_px=margin)
-    return [(fit_line(_ideal(f, lens)), f) for f in fine], widths
+    profile fit, which reaches nearer the corners, their lines, each side's blur
+    (``blur``: known widths, see :func:`fit_profiles`) and how far the area method's
+    corners may lie from them for a penumbra beside a side (the profile fit models it,
+    the area method does not: a corner moves with both of its sides, sqrt(2) times the
+    largest side's move)."""
+    fit = fit_profiles(gray, [pts for _ln, pts in sides], half_width=half_width, blur=blur,
+                       corner_gap_px=margin)
+    bent = math.sqrt(2.0) * float(np.max(np.abs(fit.bend_px), initial=0.0))
+    return [(fit_line(_ideal(f, lens)), f) for f in fit.edges], fit.widths, bent
 
 
 def _side_match(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -545,14 +548,15 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                         size_tolerance)
     elif profile:
         # the sides it passed, refined by the profile fit: kept when they pass as well
-        fine, widths = _profile_sides(gray, used, hw, margin, lens, blur)
+        fine, widths, bent = _profile_sides(gray, used, hw, margin, lens, blur)
         det3 = _assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
                          size_tolerance)
         # two estimates of the same corners must agree within the area method's
-        # uncertainty; where they do not, the model did not fit (a penumbra, a hole in
-        # the window) and the model-free area method's corners stand
+        # uncertainty (and the penumbra the profile fit modelled, which the area method
+        # reads as edge); where they do not, the model did not fit (a hole in the
+        # window, a penumbra not modelled) and the model-free area method's corners stand
         moved = _shift(det3.corners_px, det.corners_px) if det3.ok else math.inf
-        agree = moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px
+        agree = moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px + bent
         if det3.ok and not agree and _clipped_share(gray, used) > _CLIP_SHARE:
             agree = moved <= (_AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px
                               + max(_CLIP_AGREE_PX, _clip_offset(used, fine, widths)))
@@ -567,7 +571,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                              size_tolerance, inflate=False)
             if det9.ok:
                 moved = _shift(det3.corners_px, det9.corners_px)
-                agree = moved <= _AGREE_PX + _AGREE_SIGMA * det9.fit_sigma_px
+                agree = moved <= _AGREE_PX + _AGREE_SIGMA * det9.fit_sigma_px + bent
         if det3.ok and not agree and _shift(det.corners_px, corners) > _MISPLACED_PX:
             # the windows lie between the corners searched from; where those were a few
             # px off along a side (a rectangle's corners on a keystoned holder), the end
@@ -582,7 +586,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                              lens, size_tolerance, inflate=False)
             if det2.ok and det2.fit_sigma_px <= det.fit_sigma_px:
                 moved = _shift(det3.corners_px, det2.corners_px)
-                agree = moved <= _AGREE_PX + _AGREE_SIGMA * det2.fit_sigma_px
+                agree = moved <= _AGREE_PX + _AGREE_SIGMA * det2.fit_sigma_px + bent
         if agree:
             det = replace(det3, side_blur_px=tuple(
                 float(v) for v in widths[_side_match(corners, det3.corners_px)]))
