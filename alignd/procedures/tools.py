@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
@@ -271,7 +272,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     def camera(frames: list[Frame]) -> CameraInfo:
         from alignd.vision.camera_check import check_frames, gamma_text
         c = check_frames([f.gray for f in frames])  # as delivered: the curve is measured
-        ok = c.gamma == c.gamma  # (NaN: not measured)
+        ok = math.isfinite(c.gamma)  # (NaN: not measured)
         return CameraInfo(c.gamma if ok else None, c.gamma_u if ok else None,
                           c.gamma_range if ok else None, gamma_text(c),
                           [f"{f.what}: {f.advice}" for f in c.findings

@@ -358,7 +358,8 @@ def _findings(c: CameraCheck) -> list[Finding]:
             "parts (the holder on the turntable)")
     elif not math.isfinite(g):
         add("gamma", "note", "the tone curve is not measured: the noise follows no curve of "
-            "gamma 0.8-3.2 (noise reduction, or a light that flickers unevenly)", two)
+            f"gamma {_GAMMAS[0]:g}-{_GAMMAS[-1]:g} (noise reduction, or a light that flickers "
+            "unevenly)", two)
     elif lo > GAMMA_LINEAR:
         add("gamma", "act", f"the camera applies a tone curve: {gamma_text(c)}{rough}",
             f"set the camera's gamma to 1 (linear) if it can, else set cameras[].gamma to "
