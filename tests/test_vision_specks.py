@@ -64,11 +64,11 @@ def _corpus_rms(n: int, share: float) -> float:
 
 
 def test_corpus_holders_with_hot_and_dead_pixels(monkeypatch) -> None:
-    """0.1 % specks on 16 corpus scenes: corner RMS 0.0276 px clean, 0.0285 despeckled,
-    0.0343 left in (0.0379 before a penumbra was fitted with its edge and the blur's
-    spread of a slope modelled)."""
+    """0.1 % specks on 16 corpus scenes: corner RMS 0.0269 px clean, 0.0271 despeckled
+    (0.0285 while a dead pixel left on a dark face turned every window to the censored
+    fit), 0.0341 left in."""
     clean = _corpus_rms(16, 0.0)
-    assert _corpus_rms(16, 0.001) <= 1.1 * clean
+    assert _corpus_rms(16, 0.001) <= 1.03 * clean
     monkeypatch.setattr(holder, "despeckle", lambda gray: gray)
     assert _corpus_rms(16, 0.001) > 1.2 * clean  # what they did before
 
@@ -90,3 +90,37 @@ def test_tracking_despeckles_around_the_previous_corners() -> None:
         err = np.linalg.norm(order_corners(det.corners_px, t) - t, axis=1)
         assert float(err.max()) <= float(np.max(np.linalg.norm(
             order_corners(first.corners_px, t) - t, axis=1))) + 0.02
+
+
+def test_one_dead_pixel_moves_only_its_own_side() -> None:
+    """A dead pixel on a dark face (10-16 DN: too near black for despeckle to tell it
+    from its neighbours) reads as clipped at zero. The profile fit leaves the clipped
+    pixels of its window out (a censored fit); every other window keeps its own weights.
+    Before, the one pixel turned every window of the frame to the censored fit's plain
+    weights, and the corners of the sides it is not on moved by up to 0.008 px here
+    (0.03-0.04 px on a textured corpus frame; the bench's 0.1 % of dead pixels cost 10 %
+    of the corner RMS, now 1 %)."""
+    rng = np.random.default_rng(7)
+    seen = 0
+    for _ in range(60):
+        sc = random_top_scene(rng, "plain")
+        if sc.polarity != "dark" or sc.image.dtype != np.uint8:
+            continue
+        c = order_corners(sc.corners_px)
+        mid = (c[0] + c[1]) / 2  # side 0, corners 0 and 1
+        inward = (c.mean(axis=0) - mid) / np.linalg.norm(c.mean(axis=0) - mid)
+        x, y = np.rint(mid + 2.5 * inward).astype(int)
+        dead = sc.image.copy()
+        dead[y, x] = 0
+        if sc.image[y, x] > 19 or despeckle(dead)[y, x] != 0:
+            continue  # (a face despeckle would clean)
+        first = track_holder(sc.image, expected_size_px=sc.expected_size_px)
+        det = track_holder(dead, expected_size_px=sc.expected_size_px)
+        assert first.ok and det.ok, (first.reason, det.reason)
+        moved = np.linalg.norm(order_corners(det.corners_px, c)
+                               - order_corners(first.corners_px, c), axis=1)
+        assert float(moved[2:].max()) <= 0.001, moved  # corners 2, 3: not on side 0
+        seen += 1
+        if seen == 4:
+            break
+    assert seen == 4

@@ -591,6 +591,12 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     any_plain = bool(plain.any())
     w1 = np.where(plain[None, :], 1.0, (W @ ones)[:, None])
     m: float | np.ndarray = ones @ w1
+    # the windows with a clipped pixel (a censored fit, :func:`_censored`); only those:
+    # one dead pixel at zero in one window turned every window's fit to the censored
+    # one's plain weights (corpus frames with 0.1 % dead pixels: all four corners moved)
+    crow = np.zeros(P.shape[0], bool)
+    if clipped is not None:
+        crow = np.asarray(np.any(clipped[0] | clipped[1], axis=0))
     for _ in range(iterations):
         f = lead - nu_h * u
         np.minimum(np.maximum(f, 0.0, out=f), ng - 1.001, out=f)
@@ -605,21 +611,27 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         r = base1 - a1 - amp * S - ramp_nu * Q
         # (dQ/du = nu d K(d), d = nu (x - u) the normal distance)
         g = -nu * amp * S1 + ramp * (nu * (xc - u)) * S1
-        if clipped is None:
+        if clipped is None or not crow.all():
             WS, Wg = W @ S, W @ g
             if any_plain:
                 WS[:, plain], Wg[:, plain] = S[:, plain], g[:, plain]
             sS, sg = ones @ WS, ones @ Wg  # (W is symmetric: 1' W S)
             sSS, sSg, sgg = ones @ (S * WS), ones @ (S * Wg), ones @ (g * Wg)
             r0, rS, rg = ones @ (w1 * r), ones @ (r * WS), ones @ (r * Wg)
-        else:
+            m = ones @ w1
+        if clipped is not None:
             w = _censored(clipped, r)
-            m = ones @ w
             Sw, gw = S * w, g * w
-            sS, sg = ones @ Sw, ones @ gw
-            sSS, sSg, sgg = ones @ (S * Sw), ones @ (S * gw), ones @ (g * gw)
-            r = r * w
-            r0, rS, rg = ones @ r, ones @ (r * S), ones @ (r * g)
+            rw = r * w
+            sums = (ones @ w, ones @ Sw, ones @ gw, ones @ (S * Sw), ones @ (S * gw),
+                    ones @ (g * gw), ones @ rw, ones @ (rw * S), ones @ (rw * g))
+            if crow.all():
+                m, sS, sg, sSS, sSg, sgg, r0, rS, rg = sums
+            else:  # (the windows without a clipped pixel keep their weights)
+                m, sS, sg, sSS, sSg, sgg, r0, rS, rg = (
+                    np.where(crow, c, np.broadcast_to(f, crow.shape)) for c, f in zip(
+                        sums, (m, sS, sg, sSS, sSg, sgg, r0, rS, rg), strict=True))
+            r = np.where(crow[None, :], rw, r)
         # the symmetric [[m, sS, sg], [sS, sSS, sSg], [sg, sSg, sgg]] by its cofactors
         c00 = sSS * sgg - sSg * sSg
         c01 = sSg * sg - sS * sgg
@@ -635,6 +647,9 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     # (the misfit: the residuals' plain scatter; a censored fit's over its kept pixels)
     if clipped is None:
         r0, m = ones @ r, float(ones.size)
+    else:
+        r0 = np.where(crow, r0, ones @ r)
+        m = np.where(crow, m, float(ones.size))
     misfit = np.sqrt(np.maximum(ones @ (r * r) - r0 * r0 / m, 0.0) / np.maximum(m, 1.0))
     return u, D, misfit
 
