@@ -228,7 +228,11 @@ def _refit_slopes(flat: np.ndarray, P: np.ndarray, x: np.ndarray, r1: _Rows,
 
 _EVERY = 3  # the columns read for a side's floor profile: every _EVERY-th
 _LONG = 20  # px beyond the window's tails over which a side's floor profile is read
-_BEND_CHI2 = 400.0  # a penumbra's step must explain the profile this much better than a line
+# a penumbra's step must explain the profile this much better than a line (in units of
+# the mean profile's noise; 200 caught one more penumbra under a side in the corpus, and
+# read a hard shadow's band 2 px wide beside a side as one: the holder 2.6 px off, ok)
+_BEND_CHI2 = 400.0
+_BEND_MIN_DN = 0.1  # a penumbra's bend smaller than this everywhere in the window is none
 _BEND_CLIP = 0.01  # a side's profile with more of its pixels clipped is not read for a bend
 _PEN_WIDER = 1.5  # a penumbra's width, at least this many times the edge's blur
 _MU = np.arange(-6.0, 20.25, 0.5)  # the penumbra's centre, px out from the window's tail
@@ -299,8 +303,14 @@ def _penumbra_bend(flat: np.ndarray, r1: _Rows, u: np.ndarray, D: np.ndarray, hw
     for side, vals in ((0, lo[:, ::-1]), (1, hi)):
         d_win = (x if side else -x) - x_in  # each window pixel's distance out from the tails
         prof = one @ vals
-        var = one @ (vals * vals)
-        noise = np.maximum(var - prof ** 2, 1e-6).mean(axis=1) / np.maximum(counts, 1.0)
+        # the noise of the mean profile's shape: the rows' scatter about their own
+        # levels (along a side the light and the floor's texture move a row's whole
+        # profile up or down, which the level fitted with each shape takes up; counted
+        # as noise, it hid a penumbra 17 DN deep under a side, corpus)
+        vc = vals - vals.mean(axis=1, keepdims=True)
+        mc = one @ vc
+        noise = np.maximum(one @ (vc * vc) - mc ** 2, 1e-6).mean(axis=1) / np.maximum(
+            counts, 1.0)
         pc = prof - prof.mean(axis=1, keepdims=True)  # (edge, k)
         oc = out - out.mean()
         ss_all = (pc * pc).sum(axis=1)
@@ -318,6 +328,9 @@ def _penumbra_bend(flat: np.ndarray, r1: _Rows, u: np.ndarray, D: np.ndarray, hw
         height = num[e, best] / den[best]
         mu, sg = _GRID_MU[best], _GRID_SG[best]
         g = np.where(use[:, None], _bend_shape(d_win, mu, sg, height, out), 0.0)
+        # a penumbra that does not reach into the window (a plate's edge 20 px out read as
+        # one) changes nothing there, and its rows keep their clutter weights
+        g[np.abs(g).max(axis=1) < _BEND_MIN_DN] = 0.0
         # where the bend reaches the edge's transition, the penumbra with the edge
         for j in np.flatnonzero(use & (np.abs(g[:, hw]) > _JOINT_DN)):
             mine = row == j
@@ -373,8 +386,12 @@ class _Bend:
 
 _JOINT_BIN = 0.25  # px: the side's mean profile, binned by distance from each column's crossing
 # a penumbra whose bend at the window's centre is below this (DN) moves the edge too
-# little to be fitted with it (the joint fit costs 3-5 ms)
-_JOINT_DN = 0.5
+# little to be fitted with it (the joint fit costs 3-5 ms). Low, because the grid sees
+# only the penumbra's outer half: a narrow step near the tails (0.4 DN at the centre)
+# fits it as well as the wide one centred at the edge that the joint fit finds (a
+# contact shadow under uneven light, tests/test_vision_holder_penumbra.py: 0.36 px off
+# at 0.5 DN, 0.025 at 0.2)
+_JOINT_DN = 0.2
 # the joint fit places an edge only where it moves it by at least this much (px along
 # the column): its Gaussian edge is not every camera's (a 0.6 px blur drawn by a discrete
 # kernel: 0.03 px off beside a penumbra 6.5 px out), and below this the columns' own fits
