@@ -92,6 +92,11 @@ _ROUGH_SIDE_RATIO = 3.0
 # opposite sides whose fitted edge widths differ by more than this (px) and this factor
 # cannot be one flat face's (see _unlike_opposite_blurs)
 _BLUR_UNLIKE_PX, _BLUR_UNLIKE_RATIO = 1.2, 3.0
+# tracking with a lens: the fine windows lie on the chord between a side's corners, which
+# a distorted side bows away from; up to this far in its middle (px) they still catch it
+# as the coarse search's best-fit line would (corpus lens frames: 90 % bow under 0.7 px;
+# #111 of seed 2124, 1.6 px, misfitted on the chord and fell back to the area method)
+_SEED_SAGITTA_PX = 1.0
 _RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
 # tracking despeckles the frame this far around the previous corners: the side search's 10
 # px, the edge windows and the profiles read beside a side (21.5 px in, 14 out) within it
@@ -330,7 +335,10 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
                                 neighbours=neighbours)
                 if again.ok:
                     det = again
-            if det.ok:
+            if det.ok and (prior is None or _shift(order_corners(det.corners_px, prior[0]),
+                                                    prior[0]) > 1.0):
+                # (a holder within a pixel of the previous detection's corners has its
+                # sides on the same edges, which that detection's check cleared)
                 det = _not_a_shadow(gray, det, polarity, expected_size_px, hint_arr,
                                     min_contrast, max_rms_px, passes, lens, size_tolerance,
                                     refine == "profile")
@@ -444,22 +452,38 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
     and whether a side lay between two steps: if none did, the sides that held are not
     looked at for a band again, :func:`_off_the_bands`; ``neighbours``: whether to look
     for a second step beside the sides, :func:`_off_the_neighbours`)."""
-    # (a distorted side is curved in the frame: windows along the straight segment between
-    # its corners would miss its middle, so with a lens the coarse search always runs)
-    straight = lens is None or lens.k1 == 0.0
+    # (the fine windows straight on the previous sides: with a lens, only where they bow
+    # little between their corners; the coarse search runs otherwise)
     sides = _fit_sides(gray, corners, _HALF_WIDTH, _MARGIN, min_contrast, lens) \
-        if seeded and straight and passes <= 1 else None
-    blur = None
-    bands = True
-    if sides is None or not _seed_holds(sides, corners, max_rms_px, lens):
-        corners, sides = _locate(gray, corners, min_contrast, passes, lens)
-    elif prior is not None:
+        if seeded and passes <= 1 and _sagitta(corners, lens) <= _SEED_SAGITTA_PX else None
+    blur, bands = None, True
+    if sides is not None and _seed_holds(sides, corners, max_rms_px, lens):
         # every side within a pixel of where it was: its blur is the previous frame's,
         # and so is its edge's make (one step or two: 2-5 ms a frame to tell)
-        blur = prior[1][_side_match(prior[0], corners)]
-        bands = prior[2]
-    return _finish(gray, corners, sides, polarity, expected_size_px, hint, min_contrast,
+        if prior is not None:
+            blur, bands = prior[1][_side_match(prior[0], corners)], prior[2]
+        det = _finish(gray, corners, sides, polarity, expected_size_px, hint, min_contrast,
+                      max_rms_px, lens, size_tolerance, profile, blur, bands, neighbours)
+        if not (profile and det.ok and not det.side_blur_px):
+            return det
+        # the profile fit did not confirm the area method's corners on the previous
+        # sides' windows: as the coarse search places them (its corners, then the area
+        # method's own; soft sides through a lens, seed 177 #353: 0.15 px off, 0.02 so)
+    at, sides = _locate(gray, corners, min_contrast, passes, lens)
+    if blur is not None:
+        blur = blur[_side_match(corners, at)]
+    return _finish(gray, at, sides, polarity, expected_size_px, hint, min_contrast,
                    max_rms_px, lens, size_tolerance, profile, blur, bands, neighbours)
+
+
+def _sagitta(corners: np.ndarray, lens: Lens | None) -> float:
+    """How far the lens bends the holder's sides in the frame: the largest distance
+    between a side's chord (corner to corner) and its middle (px)."""
+    if lens is None or lens.k1 == 0.0:
+        return 0.0
+    ideal = lens.undistort(corners)
+    mid = lens.distort((ideal + ideal[_NEXT]) / 2)
+    return _shift(mid, (corners + corners[_NEXT]) / 2)
 
 
 def _seed_holds(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
