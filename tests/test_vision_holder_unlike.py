@@ -438,4 +438,3 @@ def test_a_brushed_faces_line_by_a_side_is_not_taken_for_its_edge(angle_deg: flo
     det = track_holder(img, expected_size_px=(303.2, 193.0))
     assert det.ok, det.reason
     assert _err(det.corners_px, held) < 0.35
-

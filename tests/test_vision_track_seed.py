@@ -60,14 +60,6 @@ def test_a_holder_that_moved_gets_the_coarse_search(
                                full.corners_px, atol=0.05)
 
 
-def _bow_px(corners: np.ndarray, lens: Lens) -> float:
-    """The largest distance between a side's chord and its middle in the frame."""
-    ideal = lens.undistort(corners)
-    mid = lens.distort((ideal + np.roll(ideal, -1, axis=0)) / 2)
-    return float(np.max(np.linalg.norm(mid - (corners + np.roll(corners, -1, axis=0)) / 2,
-                                       axis=1)))
-
-
 def test_a_slight_lens_is_tracked_on_the_previous_sides(
         scene: TopSceneSample, monkeypatch: pytest.MonkeyPatch) -> None:
     """Sides that bow by a fraction of a pixel stay inside windows on their chords: the
@@ -75,7 +67,7 @@ def test_a_slight_lens_is_tracked_on_the_previous_sides(
     h, w = scene.image.shape[:2]
     lens = Lens(1.2 * w, (w / 2, h / 2), 1e-9)
     full = track_holder(scene.image, expected_size_px=scene.expected_size_px, lens=lens)
-    assert full.ok and _bow_px(full.corners_px, lens) < 1e-3
+    assert full.ok and holder._sagitta(full.corners_px, lens) < 1e-3
     calls = _count_coarse(monkeypatch)
     tracked = track_holder(scene.image, expected_size_px=scene.expected_size_px,
                            hint=full, lens=lens)
@@ -95,7 +87,7 @@ def test_a_lens_that_bows_the_sides_gets_the_coarse_search(
     assert sc.lens is not None
     lens = Lens(sc.lens[0], sc.lens[1], sc.lens[2])
     full = track_holder(sc.image, expected_size_px=sc.expected_size_px, lens=lens)
-    assert full.ok and _bow_px(order_corners(full.corners_px), lens) > 1.0
+    assert full.ok and holder._sagitta(order_corners(full.corners_px), lens) > 1.0
     calls = _count_coarse(monkeypatch)
     tracked = track_holder(sc.image, expected_size_px=sc.expected_size_px, hint=full,
                            lens=lens)
