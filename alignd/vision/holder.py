@@ -115,6 +115,11 @@ _NEIGHBOURS_NEAR_PX = 0.3  # ... and its first pass
 # side, the larger) short of both its corners is not the holder's (see _bare_ends)
 _BARE_END_PX, _BARE_END_SHARE = 8.0, 0.1
 _BARE_PROBE_PX = 6.0  # ... unless the image steps there as the side does, this far across it
+# opposite sides further than this from parallel (deg, in the ideal image): more than a
+# camera that passes the rim pre-check (tilt under 3 deg) makes of a holder (under 1 deg
+# for one a fifth of the field wide); a side on another edge at a slant is looked for
+# within (see _not_askew)
+_MAX_SKEW_DEG = 2.0
 
 
 @dataclass(frozen=True)
@@ -339,7 +344,9 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
                                                     prior[0]) > 1.0):
                 # (a holder within a pixel of the previous detection's corners has its
                 # sides on the same edges, which that detection's check cleared)
-                det = _not_a_shadow(gray, det, polarity, expected_size_px, hint_arr,
+                for check in (_not_a_shadow, _not_askew):
+                    if det.ok:
+                        det = check(gray, det, polarity, expected_size_px, hint_arr,
                                     min_contrast, max_rms_px, passes, lens, size_tolerance,
                                     refine == "profile")
             if det.ok:
@@ -366,10 +373,11 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
             det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
                           min_contrast, max_rms_px, passes, lens, size_tolerance,
                           refine == "profile")
-            if det.ok:
-                det = _not_a_shadow(gray, det, polarity, expected_size_px, hint_arr,
-                                    min_contrast, max_rms_px, passes, lens, size_tolerance,
-                                    refine == "profile")
+            for check in (_not_a_shadow, _not_askew):
+                if det.ok:
+                    det = check(gray, det, polarity, expected_size_px, hint_arr,
+                                min_contrast, max_rms_px, passes, lens, size_tolerance,
+                                refine == "profile")
         except VisionError as exc:
             reasons.append(f"candidate at ({ctr[0]:.0f}, {ctr[1]:.0f}): {exc}")
             continue
@@ -431,6 +439,76 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
         log.debug("top image: %s; measured at the inner step instead", why)
         return again
     return _not_ok(replace(det, reason=""), why)
+
+
+def _not_askew(gray: np.ndarray, det: HolderDetection, polarity: str | None,
+               expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
+               min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None,
+               size_tolerance: float, profile: bool) -> HolderDetection:
+    """``det``, or the holder measured again inside a slanted side of it.
+
+    A side on another straight edge beyond the holder's own, at a slant, keeps a
+    rectangle within the size tolerance (corpus seed 7100 #477: a dark holder's side on a
+    bright rim ring 13-27 px beyond it, 4.8 deg from parallel to its opposite, returned 27
+    px off). Opposite sides more than ``_MAX_SKEW_DEG`` from parallel are more than a
+    camera that passes the rim pre-check makes: the side whose corners are furthest from
+    square is placed again parallel to its opposite at the expected size, and the holder
+    measured from there is taken where its own sides are parallel. Where it is not (a
+    keystone: the edges are where they were), ``det`` stands. Without an expected size
+    there is no such look."""
+    if expected_size_px is None:
+        return det
+    c = order_corners(det.corners_px)
+    ci = c if lens is None else lens.undistort(c)
+    skew, k = _skew(ci)
+    if skew <= _MAX_SKEW_DEG:
+        return det
+    # the odd side k, moved parallel to its opposite (k + 2, from corner k + 2 to k + 3)
+    # at the expected extent across
+    a, b = ci[(k + 2) % 4], ci[(k + 3) % 4]
+    u = (b - a) / max(float(np.linalg.norm(b - a)), 1e-9)
+    m = np.array([-u[1], u[0]])
+    if float(np.dot((ci[k] + ci[(k + 1) % 4]) / 2 - a, m)) < 0:
+        m = -m
+    lengths = _side_lengths(ci)
+    across = float(lengths[(k + 1) % 4] + lengths[(k + 3) % 4]) / 2
+    s = min(expected_size_px, key=lambda e: abs(e - across))
+    moved = ci.copy()
+    moved[(k + 1) % 4], moved[k] = a + s * m, b + s * m
+    if lens is not None:
+        moved = lens.distort(moved)
+    why = (f"opposite sides {skew:.1f} deg from parallel (side {k} on another edge at a "
+           "slant?)")
+    try:
+        again = _refine(gray, order_corners(moved), polarity, expected_size_px, hint,
+                        min_contrast, max_rms_px, passes, lens, size_tolerance, profile)
+    except VisionError:
+        return det
+    if not again.ok:
+        return det
+    ca = order_corners(again.corners_px)
+    if _skew(ca if lens is None else lens.undistort(ca))[0] > _MAX_SKEW_DEG:
+        return det  # the same slanted edges (a keystoned holder): they are the holder's
+    log.debug("top image: %s; measured again with that side parallel to its opposite", why)
+    return again
+
+
+def _skew(c: np.ndarray) -> tuple[float, int]:
+    """The larger angle between opposite sides of the quadrilateral ``c`` (deg), and of
+    that pair the side (k: corner k to k + 1) whose corners are further from square."""
+    edge = c[_NEXT] - c
+    ang = np.degrees(np.arctan2(edge[:, 1], edge[:, 0]))
+
+    def between(p: float, q: float) -> float:  # the angle between two lines, 0-90 deg
+        d = (p - q) % 180.0
+        return float(min(d, 180.0 - d))
+
+    pairs = [between(ang[0], ang[2]), between(ang[1], ang[3])]
+    k = int(np.argmax(pairs))
+    off = [90.0 - between(ang[i - 1], ang[i]) for i in range(4)]  # at corner i
+    if off[(k + 2) % 4] + off[(k + 3) % 4] > off[k] + off[(k + 1) % 4]:
+        k = (k + 2) % 4
+    return pairs[k % 2], k
 
 
 def _size_misfit(size: tuple[float, float], expected: tuple[float, float]) -> float:
