@@ -59,11 +59,24 @@ def _sample_points(gray: np.ndarray, p: np.ndarray) -> np.ndarray:
     return gray[y, x].astype(np.float32)
 
 
+def _face_points() -> tuple[np.ndarray, np.ndarray]:
+    """The (s, r) fractions across the quadrilateral that :func:`_interior` reads."""
+    s, r = np.meshgrid(np.linspace(0.1, 0.9, 17), np.linspace(0.1, 0.9, 17))
+    near = np.minimum(np.minimum(s, 1 - s), np.minimum(r, 1 - r)) <= 0.2 + 1e-9
+    return s[near], r[near]
+
+
+_FACE = _face_points()
+
+
 def _interior(gray: np.ndarray, c: np.ndarray) -> float:
-    """The median grey level over the middle of the quadrilateral (0.2-0.8 of the way
-    between its sides both ways): the holder's own level, a label or a sample aside."""
-    t = np.linspace(0.2, 0.8, 12)
-    s, r = np.meshgrid(t, t)
+    """The median grey level over the quadrilateral's face near its sides (0.1-0.2 of the
+    way in from each, 0.1-0.9 along it): the holder's own level. Not its middle: a label
+    as large as half the face made that the label's level, and a band just inside a side
+    over the floor's level then read as the holder's (a ring 8-16 px beyond a side taken
+    for it, tests/test_vision_holder_slant.py). A band along one side (what the check
+    looks for), even 0.35 of the way across, covers under 40 % of these points."""
+    s, r = _FACE
     p = ((1 - s) * (1 - r))[..., None] * c[0] + (s * (1 - r))[..., None] * c[1] \
         + (s * r)[..., None] * c[2] + ((1 - s) * r)[..., None] * c[3]
     return float(np.median(_sample_points(gray, p)))
