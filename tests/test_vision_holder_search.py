@@ -65,6 +65,18 @@ def test_weak_voted_boxes_are_not_refined_and_the_ladder_follows(
     assert [g.tolist() for g in got] == [d.tolist()]
 
 
+def test_voted_boxes_stop_at_max_voted_and_the_ladder_follows(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    a, b, c, d = _box(100, 100), _box(400, 100), _box(700, 100), _box(100, 400)
+    voted: list[Cand] = [(100.0, a, "dark"), (90.0, b, "dark"), (80.0, c, "mixed")]
+    monkeypatch.setattr(holder_search, "_vote_candidates", lambda *a_, **k: voted)
+    monkeypatch.setattr(holder_search, "_candidates", lambda *a_, **k: [(1.0, d, "dark")])
+    gray = np.zeros((720, 1280), np.float32)
+    got = list(holder_search.search_candidates(gray, (300.0, 160.0), None, 15.0, 0.12,
+                                               max_voted=2))
+    assert [g.tolist() for g in got] == [a.tolist(), b.tolist(), d.tolist()]
+
+
 def _outline_reference(gx: np.ndarray, gy: np.ndarray, box: np.ndarray,
                        shift: np.ndarray) -> float:
     """The outline score of one box at one shift, written out side by side."""

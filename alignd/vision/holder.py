@@ -120,6 +120,7 @@ _BARE_PROBE_PX = 6.0  # ... unless the image steps there as the side does, this 
 # for one a fifth of the field wide); a side on another edge at a slant is looked for
 # within (see _not_askew)
 _MAX_SKEW_DEG = 2.0
+_LADDER_TRIES = 3  # the threshold ladder's boxes tried beyond max_candidates (track_holder)
 
 
 @dataclass(frozen=True)
@@ -361,12 +362,16 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     check_usable(gray, min_contrast, "top image")
     tried: list[np.ndarray] = []
     last: HolderDetection | None = None
+    # the voted boxes take at most max_candidates tries, and the threshold ladder's, which
+    # follow, a few more: where the holder's two sizes pair at different scales (a plate
+    # beside one side, 5 % of the holder), its sides vote along one midline only, every
+    # voted box lies somewhere along it, and the ladder's outline is the one there is
     for box in search_candidates(gray, expected_size_px, polarity, min_contrast,
-                                 size_tolerance):
+                                 size_tolerance, max_voted=max_candidates):
         ctr = box.mean(axis=0)
         if any(np.linalg.norm(ctr - t) < 8.0 for t in tried):
             continue
-        if len(tried) >= max_candidates:
+        if len(tried) >= max_candidates + _LADDER_TRIES:
             break
         tried.append(ctr)
         try:

@@ -23,9 +23,10 @@ _MIN_SUPPORT_RATIO = 0.1  # a voted box this much weaker than the best is not re
 
 
 def search_candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
-                      polarity: str | None, min_contrast: float, size_tolerance: float
-                      ) -> Iterator[np.ndarray]:
-    """Approximate boxes (4 corners, full-res px), the likeliest first.
+                      polarity: str | None, min_contrast: float, size_tolerance: float,
+                      max_voted: int | None = None) -> Iterator[np.ndarray]:
+    """Approximate boxes (4 corners, full-res px), the likeliest first: at most
+    ``max_voted`` voted ones, then the ladder's.
 
     Lazy: the caller refines them in turn and stops at the first that passes, so the
     threshold ladder (about 5 ms) is only built when every voted box failed, or without
@@ -40,8 +41,9 @@ def search_candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | 
         # the holder's four sides contrast the same way: a box whose outline is darker
         # outside on some sides and brighter on others (it straddles two objects) is
         # refined only after every box that could be the holder
-        yield from (box for pol, box in strong if pol != "mixed")
-        yield from (box for pol, box in strong if pol == "mixed")
+        ranked = [box for pol, box in strong if pol != "mixed"] + \
+            [box for pol, box in strong if pol == "mixed"]
+        yield from ranked[:max_voted]
     for _score, box, _pol in _candidates(gray, expected_size_px, polarity):
         yield box
 

@@ -38,6 +38,12 @@ _FAR_PX = 24.0  # the inner step is looked for this deep (at most 0.35 of the ex
 # when the configured size was 5 % small)
 _MIN_RATIO = 0.2
 _MIN_STEP_DN = 8.0  # and at least this, in grey levels (texture and noise stay below)
+# ... or at least _EDGE_RATIO where the inner step is an edge: as sharp as a side (its 25-75 %
+# rise within _EDGE_WIDTH_PX) and at least _EDGE_DEPTH_PX inside (a sample plate 13.5 px
+# wide beside a light holder, 25 DN darker than it on a 130 DN step, read 0.18: seed 9100
+# #291, returned 13.5 px wrong; the right holders of two corpora read up to 0.18 too, but
+# their inner steps were 3-5 px in, the side's own transition, or 4-16 px wide, shading)
+_EDGE_RATIO, _EDGE_WIDTH_PX, _EDGE_DEPTH_PX = 0.1, 3, 6.0
 
 
 @dataclass(frozen=True)
@@ -152,22 +158,28 @@ def inner_step(gray: np.ndarray, corners: np.ndarray) -> InnerStep | None:
     r_deep, r_level, start = side_ratios(gray, c)
     ratio = np.minimum(r_deep, r_level)
     k = int(np.argmax(ratio))
-    if ratio[k] < _MIN_RATIO:
+    if ratio[k] < _EDGE_RATIO:
         return None
     edge, length, n = side_frame(c)
     far = min(_FAR_PX, 0.35 * float(length[(k + 1) % 4]))
-    depth = _inner_depth(gray, c[k], edge[k] / length[k], n[k], float(length[k]), far,
+    found = _inner_depth(gray, c[k], edge[k] / length[k], n[k], float(length[k]), far,
                          float(start[k]))
-    return None if depth is None else InnerStep(k, float(ratio[k]), depth,
-                                                (float(-n[k, 0]), float(-n[k, 1])))
+    if found is None:
+        return None
+    depth, width = found
+    if ratio[k] < _MIN_RATIO and not (width <= _EDGE_WIDTH_PX and depth >= _EDGE_DEPTH_PX):
+        return None
+    return InnerStep(k, float(ratio[k]), depth, (float(-n[k, 0]), float(-n[k, 1])))
 
 
 def _inner_depth(gray: np.ndarray, a: np.ndarray, u: np.ndarray, n: np.ndarray,
-                 length: float, far: float, start: float = -_IN[1]) -> float | None:
+                 length: float, far: float, start: float = -_IN[1]
+                 ) -> tuple[float, int] | None:
     """How far inside the side (from corner ``a`` along ``u``, ``n`` outward) the median
     profile, going inward, first passes half-way from the level just inside to the level
-    ``far`` inside: the inner step, where the holder's true side likely is (None when
-    there is no such step, only a slow change)."""
+    ``far`` inside: the inner step, where the holder's true side likely is; and over how
+    many px it rises from a quarter to three quarters of the way (None when there is no
+    such step, only a slow change)."""
     frac = np.linspace(0.2, 0.8, 16)
     depths = np.arange(-start, -far - 0.5, -1.0)  # from just inside (start px), inward
     p = a + (frac[:, None, None] * length) * u + depths[None, :, None] * n
@@ -186,4 +198,4 @@ def _inner_depth(gray: np.ndarray, a: np.ndarray, u: np.ndarray, n: np.ndarray,
     hi = first_past(0.25 * float(prof[0]) + 0.75 * float(prof[-1]))
     if past is None or lo is None or hi is None or hi - lo > 8:
         return None
-    return float(-depths[past])
+    return float(-depths[past]), hi - lo
