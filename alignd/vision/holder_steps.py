@@ -80,7 +80,7 @@ def _interior(gray: np.ndarray, c: np.ndarray) -> float:
     way in from each, 0.1-0.9 along it): the holder's own level. Not its middle: a label
     as large as half the face made that the label's level, and a band just inside a side
     over the floor's level then read as the holder's (a ring 8-16 px beyond a side taken
-    for it, tests/test_vision_holder_slant.py). A band along one side (what the check
+    for it, tests/test_vision_holder_beyond.py). A band along one side (what the check
     looks for), even 0.35 of the way across, covers under 40 % of these points."""
     s, r = _FACE
     p = ((1 - s) * (1 - r))[..., None] * c[0] + (s * (1 - r))[..., None] * c[1] \
