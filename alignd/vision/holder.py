@@ -345,9 +345,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
                                                     prior[0]) > 1.0):
                 # (a holder within a pixel of the previous detection's corners has its
                 # sides on the same edges, which that detection's check cleared)
-                for check in (_not_a_shadow, _not_askew):
-                    if det.ok:
-                        det = check(gray, det, polarity, expected_size_px, hint_arr,
+                det = _looked_again(gray, det, polarity, expected_size_px, hint_arr,
                                     min_contrast, max_rms_px, passes, lens, size_tolerance,
                                     refine == "profile")
             if det.ok:
@@ -378,9 +376,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
             det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
                           min_contrast, max_rms_px, passes, lens, size_tolerance,
                           refine == "profile")
-            for check in (_not_a_shadow, _not_askew):
-                if det.ok:
-                    det = check(gray, det, polarity, expected_size_px, hint_arr,
+            det = _looked_again(gray, det, polarity, expected_size_px, hint_arr,
                                 min_contrast, max_rms_px, passes, lens, size_tolerance,
                                 refine == "profile")
         except VisionError as exc:
@@ -402,6 +398,20 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
                            center_px=np.full(2, np.nan), angle_deg=math.nan, quality=0.0,
                            corner_sigma_px=math.nan, polarity=last.polarity,
                            size_px=(math.nan, math.nan), reason=why)
+
+
+def _looked_again(gray: np.ndarray, det: HolderDetection, polarity: str | None,
+                  expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
+                  min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None,
+                  size_tolerance: float, profile: bool) -> HolderDetection:
+    """``det`` after the checks that may measure the holder again elsewhere (a side on
+    a shadow's edge, :func:`_not_a_shadow`; on another edge at a slant,
+    :func:`_not_askew`): a found holder passes both, a refused one neither."""
+    for check in (_not_a_shadow, _not_askew):
+        if det.ok:
+            det = check(gray, det, polarity, expected_size_px, hint, min_contrast,
+                        max_rms_px, passes, lens, size_tolerance, profile)
+    return det
 
 
 def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
