@@ -7,8 +7,10 @@ do from the pixels, given the sensor's noise, on the bench's corpus.
     python bench/vision_bounds.py --quick         # CI-sized (42 top scenes, 10 side views)
 
 Top: a frame's holder corners. The model is the one the profile fit assumes, with the
-nuisances it leaves free: four straight sides (a camera that may look obliquely: no
-rectangle is imposed), each column across a side with its own level and step height
+nuisances it leaves free: four straight sides (a camera that may look obliquely), and
+beside it the bound of a rectangle (the four sides turned as one, which the fit uses where
+their directions agree with it: :mod:`alignd.vision.holder_square`), each column across a
+side with its own level and step height
 (textures, gradients), the blur and the illumination slopes known, white noise of the
 scene's own variance (read noise and shot noise). Columns reach to the corners, the
 neighbouring side's blurred step modelled, so the bound is what an estimator that also
@@ -133,11 +135,13 @@ def _side_information(gray: np.ndarray, var: np.ndarray, sides: list[tuple], k: 
 
 
 def corner_bound(gray: np.ndarray, corners_px: np.ndarray, blur_px: float,
-                 var: np.ndarray) -> np.ndarray:
+                 var: np.ndarray, model: str = "quadrilateral") -> np.ndarray:
     """The Cramer-Rao bound of each corner's position error (px, RMS of the 2-D error) of
     the quadrilateral ``corners_px`` (in order round it) in ``gray`` (8-bit DN), for a
     Gaussian blur of ``blur_px`` and pixel noise variances ``var``; inf where a side has
-    too few columns to be placed."""
+    too few columns to be placed. ``model``: "quadrilateral", four free sides (what a
+    tilted camera's perspective needs), or "rectangle", the four sides turned as one
+    (what :mod:`alignd.vision.holder_square` fits where their directions agree)."""
     c = order_corners(np.asarray(corners_px, float))
     centre = c.mean(axis=0)
     sides = []
@@ -149,30 +153,46 @@ def corner_bound(gray: np.ndarray, corners_px: np.ndarray, blur_px: float,
         if n @ (centre - a) < 0:
             n = -n  # inward
         sides.append((a, b, length, t, n))
-    covs = []
+    # the joint information of (side 0-3's offsets, side 0-3's rotations about their
+    # middles); a rectangle's four rotations are one (its turn about its centre moves
+    # each side along itself, not across)
+    info = np.zeros((8, 8))
     for k in range(4):
-        info = _side_information(gray, var, sides, k, blur_px)
-        if abs(np.linalg.det(info)) < 1e-12:
+        i_k = _side_information(gray, var, sides, k, blur_px)
+        if abs(np.linalg.det(i_k)) < 1e-12:
             return np.full(4, math.inf)
-        covs.append(np.linalg.inv(info))
+        idx = np.array([k, 4 + k])
+        info[np.ix_(idx, idx)] = i_k
+    if model == "rectangle":
+        tie = np.zeros((8, 5))
+        tie[:4, :4] = np.eye(4)
+        tie[4:, 4] = 1.0
+    else:
+        tie = np.eye(8)
+    cov = tie @ np.linalg.inv(tie.T @ info @ tie) @ tie.T
     out = np.empty(4)
     for k in range(4):  # corner k + 1: the end of side k and the start of side k + 1
-        s1, s2 = sides[k], sides[(k + 1) % 4]
-        e1 = np.array([1.0, s1[2] / 2])
-        e2 = np.array([1.0, -s2[2] / 2])
-        var_n = np.diag([e1 @ covs[k] @ e1, e2 @ covs[(k + 1) % 4] @ e2])
+        j = (k + 1) % 4
+        s1, s2 = sides[k], sides[j]
+        # the two sides' normal displacements at the corner, from (offset, rotation)
+        ends = np.zeros((2, 8))
+        ends[0, [k, 4 + k]] = 1.0, s1[2] / 2
+        ends[1, [j, 4 + j]] = 1.0, -s2[2] / 2
+        var_n = ends @ cov @ ends.T
         inv = np.linalg.inv(np.array([s1[4], s2[4]]))
-        out[(k + 1) % 4] = math.sqrt(float(np.trace(inv @ var_n @ inv.T)))
+        out[j] = math.sqrt(float(np.trace(inv @ var_n @ inv.T)))
     return out
 
 
-def corpus_bound(n: int, seed: int) -> dict[str, tuple[list[float], list[float]]]:
+def corpus_bound(n: int, seed: int
+                 ) -> dict[str, tuple[list[float], list[float], list[float]]]:
     """The bench's top corpus (``seed``: bench/vision.py's seed + 100): per category, the
-    squared corner errors of track_holder and the squared bounds, over the uncompressed
+    squared corner errors of track_holder and the squared bounds (a quadrilateral's, a
+    rectangle's), over the uncompressed
     frames without lens distortion that it finds (a wrong detection, > 1 px, left out as
     the bench leaves it out)."""
     rng = np.random.default_rng(seed)
-    out: dict[str, tuple[list[float], list[float]]] = {}
+    out: dict[str, tuple[list[float], list[float], list[float]]] = {}
     for i in range(n):
         cat = TOP_CATEGORIES[i % len(TOP_CATEGORIES)]
         sc = random_top_scene(rng, cat)
@@ -191,10 +211,12 @@ def corpus_bound(n: int, seed: int) -> dict[str, tuple[list[float], list[float]]
         gray = as_gray(sc.image, "top image")
         var = _scene_variance(gray, sc.params, sc.encoding.bits)
         bound = corner_bound(gray, truth, _num(sc.params, "blur_px"), var)
+        rect = corner_bound(gray, truth, _num(sc.params, "blur_px"), var, "rectangle")
         for key in (cat, "total"):
-            e2, b2 = out.setdefault(key, ([], []))
+            e2, b2, r2 = out.setdefault(key, ([], [], []))
             e2.extend((err ** 2).tolist())
             b2.extend((bound ** 2).tolist())
+            r2.extend((rect ** 2).tolist())
     return out
 
 
@@ -292,14 +314,17 @@ def corpus_side_bound(n: int, seed: int, frames: int = 8
 def print_top(n: int, seed: int) -> None:
     res = corpus_bound(n, seed + 100)
     print(f"top corpus (seed {seed} + 100), uncompressed, no lens distortion: corner "
-          "RMS error (px) against the Cramer-Rao bound")
-    print(f"{'category':12s} {'scenes':>6s} {'ours':>8s} {'bound':>8s} {'ratio':>6s}")
+          "RMS error (px) against the Cramer-Rao bound of four free sides (quad) and of "
+          "a rectangle's (rect)")
+    print(f"{'category':12s} {'scenes':>6s} {'ours':>8s} {'quad':>8s} {'ratio':>6s} "
+          f"{'rect':>8s} {'ratio':>6s}")
     for cat in [*TOP_CATEGORIES, "total"]:
         if cat not in res:
             continue
-        e2, b2 = res[cat]
-        ours, bound = math.sqrt(float(np.mean(e2))), math.sqrt(float(np.mean(b2)))
-        print(f"{cat:12s} {len(e2) // 4:6d} {ours:8.4f} {bound:8.4f} {ours / bound:6.2f}")
+        e2, b2, r2 = res[cat]
+        ours, bound, rect = (math.sqrt(float(np.mean(v))) for v in (e2, b2, r2))
+        print(f"{cat:12s} {len(e2) // 4:6d} {ours:8.4f} {bound:8.4f} {ours / bound:6.2f} "
+              f"{rect:8.4f} {ours / rect:6.2f}")
 
 
 def print_side(n: int, seed: int, frames: int) -> None:

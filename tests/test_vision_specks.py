@@ -64,13 +64,14 @@ def _corpus_rms(n: int, share: float) -> float:
 
 
 def test_corpus_holders_with_hot_and_dead_pixels(monkeypatch) -> None:
-    """0.1 % specks on 16 corpus scenes: corner RMS 0.0269 px clean, 0.0271 despeckled
-    (0.0285 while a dead pixel left on a dark face turned every window to the censored
-    fit), 0.0341 left in."""
+    """0.1 % specks on 16 corpus scenes: corner RMS 0.0184 px clean, 0.0182 despeckled,
+    0.0204 left in (with the sides' directions free, before holder_square pooled them:
+    0.0269, 0.0271, 0.0341; 0.0285 despeckled while a dead pixel left on a dark face
+    turned every window to the censored fit)."""
     clean = _corpus_rms(16, 0.0)
     assert _corpus_rms(16, 0.001) <= 1.03 * clean
     monkeypatch.setattr(holder, "despeckle", lambda gray: gray)
-    assert _corpus_rms(16, 0.001) > 1.2 * clean  # what they did before
+    assert _corpus_rms(16, 0.001) > 1.08 * clean  # what they did before
 
 
 def test_tracking_despeckles_around_the_previous_corners() -> None:

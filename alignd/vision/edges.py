@@ -588,10 +588,12 @@ def _consensus(major: np.ndarray, minor: np.ndarray, band: float = 1.5, pairs: i
 
 
 def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
-             iterations: int = 4, min_sigma: float = 0.01, start: np.ndarray | None = None
-             ) -> Line | None:
+             iterations: int = 4, min_sigma: float = 0.01, start: np.ndarray | None = None,
+             slope: tuple[float, float] | None = None) -> Line | None:
     """Least-squares line minor = a + b * major with iterative robust rejection;
-    ``start`` (bool per point): the points the first fit uses (default: all)."""
+    ``start`` (bool per point): the points the first fit uses (default: all); ``slope``:
+    b and its variance, known from elsewhere (only a is fitted; see
+    :mod:`alignd.vision.holder_square`)."""
     n_pts = pts.xy.shape[0]
     if n_pts < min_points:
         return None
@@ -611,8 +613,11 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
         if nu < min_points:
             return None
         um, vm = float(uu.sum()) / nu, float(vv.sum()) / nu
-        du = uu - um
-        b = float(du @ (vv - vm)) / max(float(du @ du), 1e-12)
+        if slope is None:
+            du = uu - um
+            b = float(du @ (vv - vm)) / max(float(du @ du), 1e-12)
+        else:
+            b = slope[0]
         a0 = vm - b * um
         res = minor - (a0 + b * u)
         ru = res if use is None else res[use]
@@ -630,13 +635,18 @@ def fit_line(pts: EdgePoints, *, reject_sigma: float = 3.5, min_points: int = 8,
         return None
     r = res if use is None else res[use]
     uf = u if use is None else u[use]
-    s2 = float(r @ r) / max(n_used - 2, 1)
-    # covariance of (a, b) of the centred fit, by the 2 x 2 normal matrix's inverse
+    s2 = float(r @ r) / max(n_used - (2 if slope is None else 1), 1)
     s_u, s_uu = float(uf.sum()), float(uf @ uf)
-    det = n_used * s_uu - s_u * s_u
-    if abs(det) < 1e-12:
-        return None
-    cov_c = (s2 / det) * np.array([[s_uu, -s_u], [-s_u, float(n_used)]])
+    if slope is not None:
+        # a = (the points' mean) - b (their mean major): b's variance enters at that lever
+        um, vb = s_u / n_used, slope[1]
+        cov_c = np.array([[s2 / n_used + um * um * vb, -um * vb], [-um * vb, vb]])
+    else:
+        # covariance of (a, b) of the centred fit, by the 2 x 2 normal matrix's inverse
+        det = n_used * s_uu - s_u * s_u
+        if abs(det) < 1e-12:
+            return None
+        cov_c = (s2 / det) * np.array([[s_uu, -s_u], [-s_u, float(n_used)]])
     # back to a + b * major (un-centred)
     T = np.array([[1.0, -m0], [0.0, 1.0]])
     cov_ab = T @ cov_c @ T.T

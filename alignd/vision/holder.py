@@ -10,7 +10,9 @@ every check then has each side's crossings refined by fitting the pixel-exact mo
 blurred step (:mod:`alignd.vision.profile_fit`, about half the area method's noise); the
 corners are the intersections of adjacent sides, so every corner uses some hundred
 columns instead of the few pixels around it (the thesis' detector had 0.3 px noise). The
-quadrilateral is not forced to be a rectangle, so a tilted camera's perspective is followed.
+quadrilateral is not forced to be a rectangle, so a tilted camera's perspective is followed;
+where the four sides' directions agree with a rectangle's within their noise, they share
+one (:mod:`alignd.vision.holder_square`: a corner's error is mostly its sides' directions).
 
 Corners come ordered by their angle around the centre, starting from the image's -x
 direction and turning toward -y (on screen: top-left, top-right, bottom-right, bottom-left
@@ -55,6 +57,7 @@ from alignd.vision.holder_bands import SideProfiles, read_sides, side_bands
 from alignd.vision.holder_neighbours import REACH as NEIGHBOUR_REACH
 from alignd.vision.holder_neighbours import neighbour_steps, without_neighbours
 from alignd.vision.holder_search import search_candidates
+from alignd.vision.holder_square import square_sides
 from alignd.vision.holder_steps import inner_step, side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import fit_profiles
@@ -259,7 +262,10 @@ def _profile_sides(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]]
     fit = fit_profiles(gray, [pts for _ln, pts in sides], half_width=half_width, blur=blur,
                        corner_gap_px=margin)
     bent = math.sqrt(2.0) * float(np.max(np.abs(fit.bend_px), initial=0.0))
-    return [(fit_line(_ideal(f, lens)), f) for f in fit.edges], fit.widths, bent
+    ideal = [_ideal(f, lens) for f in fit.edges]
+    # (sides whose directions agree with a rectangle's share it: holder_square)
+    lines = square_sides([fit_line(p) for p in ideal], ideal)
+    return list(zip(lines, fit.edges, strict=True)), fit.widths, bent
 
 
 def _side_match(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
