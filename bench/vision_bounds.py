@@ -7,15 +7,15 @@ do from the pixels, given the sensor's noise, on the bench's corpus.
     python bench/vision_bounds.py --quick         # CI-sized (42 top scenes, 10 side views)
 
 Top: a frame's holder corners. The model is the one the profile fit assumes, with the
-nuisances it leaves free: four straight sides (a camera that may look obliquely), and
-beside it the bound of a rectangle (the four sides turned as one, which the fit uses where
-their directions agree with it: :mod:`alignd.vision.holder_square`), each column across a
-side with its own level and step height
-(textures, gradients), the blur and the illumination slopes known, white noise of the
-scene's own variance (read noise and shot noise). Columns reach to the corners, the
-neighbouring side's blurred step modelled, so the bound is what an estimator that also
-used the corner regions could reach. It covers the corpus's uncompressed frames without
-lens distortion (a curved side has no straight-line bound in frame pixels) and compares
+nuisances it leaves free: four straight sides (a camera that may look obliquely), each
+column across a side with its own level and step height (textures, gradients), the blur
+and the illumination slopes known, white noise of the scene's own variance (read noise and
+shot noise). Columns reach to the corners, the neighbouring side's blurred step modelled,
+so the bound is what an estimator that also used the corner regions could reach. Beside
+it, the bound of a rectangle: the four sides turned as one, which the fit uses where their
+directions agree with it (:mod:`alignd.vision.holder_square`). It covers the corpus's
+uncompressed frames without lens distortion (a curved side has no straight-line bound in
+frame pixels) and compares
 the corner RMS error of :func:`alignd.vision.holder.track_holder` on the same frames
 (noise and bias) with the bound (noise only).
 
@@ -37,6 +37,7 @@ import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Literal  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy.special import ndtr  # noqa: E402
@@ -135,7 +136,8 @@ def _side_information(gray: np.ndarray, var: np.ndarray, sides: list[tuple], k: 
 
 
 def corner_bound(gray: np.ndarray, corners_px: np.ndarray, blur_px: float,
-                 var: np.ndarray, model: str = "quadrilateral") -> np.ndarray:
+                 var: np.ndarray, model: Literal["quadrilateral", "rectangle"] = "quadrilateral"
+                 ) -> np.ndarray:
     """The Cramer-Rao bound of each corner's position error (px, RMS of the 2-D error) of
     the quadrilateral ``corners_px`` (in order round it) in ``gray`` (8-bit DN), for a
     Gaussian blur of ``blur_px`` and pixel noise variances ``var``; inf where a side has
