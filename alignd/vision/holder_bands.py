@@ -226,6 +226,12 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
     f, J = steps_model(P, x, foot, steps, own_blur)
     cost = np.sum(w * (m - f) ** 2, axis=1)
     eye = np.eye(P.shape[1])[None]
+    # the bounds: the blurs within 0.2-4 px, the steps within reach
+    lo, hi = np.full(P.shape[1], -np.inf), np.full(P.shape[1], np.inf)
+    lo[2], hi[2] = 0.2, 4.0
+    if own_blur:
+        lo[-1], hi[-1] = 0.2, 4.0
+    lo[4::2], hi[4::2] = -reach + 0.5, reach - 0.5
     live = np.ones(len(P), bool)  # rows still improving
     for _ in range(iterations):
         b = np.flatnonzero(live)
@@ -234,17 +240,21 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
         Jw = J[b] * w[b, :, None]
         A = Jw.transpose(0, 2, 1) @ J[b]
         g = (Jw.transpose(0, 2, 1) @ (m[b] - f[b])[..., None])[..., 0]
+        # a parameter at its bound that the descent pushes beyond it is held there (an
+        # active set): clipped after every step instead, it crawled along the bound and
+        # took all the iterations (a sharp side's blur at 0.2 px)
+        held = ((P[b] <= lo) & (g < 0)) | ((P[b] >= hi) & (g > 0))
+        if held.any():
+            free = ~held
+            A = A * (free[:, :, None] & free[:, None, :]) + held[:, :, None] * eye
+            g = np.where(held, 0.0, g)
         diag = np.einsum("bii->bi", A)[:, :, None] * eye
         try:
             step = np.linalg.solve(A + lam[b, None, None] * diag + 1e-12 * eye,
                                    g[..., None])[..., 0]
         except np.linalg.LinAlgError:
             break
-        Q = P[b] + step
-        Q[:, 2] = np.clip(Q[:, 2], 0.2, 4.0)
-        if own_blur:
-            Q[:, -1] = np.clip(Q[:, -1], 0.2, 4.0)
-        Q[:, 4::2] = np.clip(Q[:, 4::2], -reach + 0.5, reach - 0.5)
+        Q = np.clip(P[b] + step, lo, hi)
         fq, Jq = steps_model(Q, x[b], foot[b], steps, own_blur)
         cq = np.sum(w[b] * (m[b] - fq) ** 2, axis=1)
         better = cq < cost[b]
