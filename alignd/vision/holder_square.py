@@ -41,8 +41,7 @@ def _slope(ln: Line) -> float:
 def _direction(ln: Line) -> tuple[float, float]:
     """The line's direction (rad, x toward y, modulo pi) and its variance."""
     b = _slope(ln)
-    phi = math.atan2(1.0, b) if ln.vertical else math.atan(b)
-    return phi, float(ln.cov_ab[1, 1]) / (1.0 + b * b) ** 2
+    return math.radians(ln.angle_deg), float(ln.cov_ab[1, 1]) / (1.0 + b * b) ** 2
 
 
 def _wrap(x: float, period: float) -> float:
