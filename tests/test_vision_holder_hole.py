@@ -25,26 +25,29 @@ _L, _S, _ANGLE = 200.0, 100.0, 25.0
 _HOLE_R, _HOLE_IN, _HOLE_AT = 15.0, 7.0, 0.3  # radius, centre inside the side, along it
 
 
-def _hole_scene() -> tuple[np.ndarray, np.ndarray]:
+def _hole_scene(short: float = _S, hole_r: float = _HOLE_R, hole_in: float = _HOLE_IN,
+                hole_at: float = _HOLE_AT, blur: float = 1.3) -> tuple[np.ndarray, np.ndarray]:
     """A dark 200 x 100 px holder on a grey floor with a floor hole (as dark) under side 3
     (corner 3 to 0), its centre 7 px inside the holder: 8 px of it show outside over 26 px
-    of the side. Exact pixel-area edges, blur 1.3 px, noise 2 DN. Returns (image, corners)."""
+    of the side. Exact pixel-area edges, blur 1.3 px, noise 2 DN. Returns (image, corners).
+    (``short``: the holder's short side; ``hole_*``: the hole's radius, how far inside the
+    side its centre lies and where along the side, as a fraction from corner 3.)"""
     w, h = 420, 320
     t = math.radians(_ANGLE)
     u, v = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
     ctr = np.array([210.3, 160.6])
-    c = np.array([ctr - _L / 2 * u - _S / 2 * v, ctr + _L / 2 * u - _S / 2 * v,
-                  ctr + _L / 2 * u + _S / 2 * v, ctr - _L / 2 * u + _S / 2 * v])
-    hole = c[3] + _HOLE_AT * (c[0] - c[3]) + u * _HOLE_IN
+    c = np.array([ctr - _L / 2 * u - short / 2 * v, ctr + _L / 2 * u - short / 2 * v,
+                  ctr + _L / 2 * u + short / 2 * v, ctr - _L / 2 * u + short / 2 * v])
+    hole = c[3] + hole_at * (c[0] - c[3]) + u * hole_in
     ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
-    r2 = _HOLE_R ** 2
+    r2 = hole_r ** 2
     circle = Conic(np.array([[1.0, 0.0, -hole[0]], [0.0, 1.0, -hole[1]],
                              [-hole[0], -hole[1], hole[0] ** 2 + hole[1] ** 2 - r2]]))
     region = (0, 0, w, h)
     img = np.full((h, w), 115.0, np.float32)
     img += (38.0 - img) * coverage(circle, ras, region)
     img += (40.0 - img) * coverage(Polygon(c), ras, region)
-    img = cv2.GaussianBlur(img, (0, 0), 1.3)
+    img = cv2.GaussianBlur(img, (0, 0), blur)
     img += np.random.default_rng(3).normal(0.0, 2.0, img.shape).astype(np.float32)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8), c
 
@@ -76,3 +79,18 @@ def test_a_box_3_px_off_is_refined_past_a_hole(shift: tuple[float, float],
     assert det.ok, det.reason
     err = np.linalg.norm(order_corners(det.corners_px, c) - c, axis=1)
     assert err.max() < 0.3, err
+
+
+@pytest.mark.parametrize(("short", "hole_r", "hole_at"), [(74.0, 18.0, 0.3), (74.0, 22.0, 0.3),
+                                                       (90.0, 22.0, 0.5)])
+def test_a_short_side_mostly_over_a_hole_is_found(short: float, hole_r: float,
+                                                  hole_at: float) -> None:
+    """A hole as dark as the holder centred on a short side hides 36-49 px of its 74-90 px
+    (corpus #100, #219, #420 of seed 7100 at 640 x 480, breadboards): what shows is under
+    half the columns the side's length calls for. A straight run of 10 or more columns
+    that a third of the length calls for is a side: found, and right."""
+    img, c = _hole_scene(short, hole_r, 0.0, hole_at, blur=0.6)
+    det = track_holder(img, expected_size_px=(_L, short))
+    assert det.ok, det.reason
+    err = np.linalg.norm(order_corners(det.corners_px, c) - c, axis=1)
+    assert err.max() < 0.05, err

@@ -92,6 +92,10 @@ _AREA_ALONE_SIGMA_PX = 0.3
 # ... or when one side's line fits this many times worse than the four sides' median (its
 # windows hold a second step: see _rough_side)
 _ROUGH_SIDE_RATIO = 3.0
+# a side's edge must run through at least this share of the columns (rows) its length calls
+# for, and 10 of them: a floor hole as dark as the holder can hide over half of a short
+# side (corpus breadboards at 640 x 480: 0.5 refused three right holders, 0.3 no wrong one)
+_MIN_SIDE_SHARE = 0.3
 # opposite sides whose fitted edge widths differ by more than this (px) and this factor
 # cannot be one flat face's (see _unlike_opposite_blurs)
 _BLUR_UNLIKE_PX, _BLUR_UNLIKE_RATIO = 1.2, 3.0
@@ -1001,7 +1005,7 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
             continue
         f = min(1.0, ln.n_used / expected)
         frac.append(f)
-        good = ln.n_used >= 10 and f >= 0.5 and ln.rms_px <= max_rms_px
+        good = ln.n_used >= 10 and f >= _MIN_SIDE_SHARE and ln.rms_px <= max_rms_px
         if not good:
             reasons.append(f"side {i}: {ln.n_used} columns, rms {ln.rms_px:.2f} px")
         edge_ok.append(good)
