@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from alignd.vision import holder_search
-from alignd.vision.holder import track_holder
+from alignd.vision.holder import order_corners, track_holder
 from drivers.sim.render import Polygon, Raster, coverage
 
 Cand = tuple[float, np.ndarray, str]
@@ -173,3 +173,40 @@ def test_percentiles_are_np_percentile(n: int) -> None:
             for qs in ((0.5, 99.5), (0.0, 100.0), (37.3, 50.0)):
                 got = holder_search._percentiles(a, qs)
                 assert got == np.percentile(a, qs).tolist()
+
+
+def _on_a_breadboard(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A dark 440 x 190 px holder (88 DN) with a lighter 21 px plate (127 DN) along one long
+    side, on a floor (185 DN) with M6 holes on a 25 mm grid (55 DN; 117 px pitch, 14 px
+    radius: corpus #236 of seed 5100, a 213 um pixel). A hole's edge pairs with the holes
+    four pitches on at 440 px, the holder's long side: those pairs vote at their midpoints
+    as strongly as the holder's short sides vote at its centre."""
+    w, h = 1280, 720
+    img = np.full((h, w), 185.0, np.float32)
+    holes = np.zeros((h, w), np.uint8)
+    for y in np.arange(97.5, h, 117.0):
+        for x in np.arange(78.0, w, 117.0):
+            cv2.circle(holes, (round(4 * x), round(4 * y)), 56, 255, -1, cv2.LINE_AA, shift=2)
+    img += (55.0 - img) * (holes / 255.0)
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    held = cv2.boxPoints(((575.3, 315.2), (440.0, 190.0), -27.5)).astype(float)
+    t = np.radians(-27.5)
+    out = np.array([-np.sin(t), np.cos(t)]) * 10.5
+    union = cv2.boxPoints(((575.3 + out[0], 315.2 + out[1]), (440.0, 211.0), -27.5))
+    img += (127.0 - img) * coverage(Polygon(union.astype(float)), ras, (0, 0, w, h))
+    img += (88.0 - img) * coverage(Polygon(held), ras, (0, 0, w, h))
+    img = cv2.GaussianBlur(img, (0, 0), 0.4)
+    img += np.random.default_rng(seed).normal(0, 1.0, img.shape).astype(np.float32)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), held
+
+
+def test_the_centre_is_where_both_midlines_vote() -> None:
+    """The long sides' votes and the short sides' are kept apart and a centre needs both:
+    a bump on one midline alone (here the holes' pairs) no longer outranks the holder,
+    which every voted box missed before (no holder found)."""
+    img, held = _on_a_breadboard()
+    voted = holder_search._vote_candidates(img.astype(np.float32), (440.0, 190.0), 15.0)
+    assert np.linalg.norm(voted[0][1].mean(axis=0) - held.mean(axis=0)) < 4.0
+    det = track_holder(img, expected_size_px=(440.0, 190.0))
+    assert det.ok, det.reason
+    assert np.max(np.linalg.norm(order_corners(det.corners_px, held) - held, axis=1)) < 0.3

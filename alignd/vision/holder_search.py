@@ -216,10 +216,11 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
     minimum contrast, thinned by non-maximum suppression) that has a partner edge a whole
     side (short or long) away along its gradient, with the opposite gradient, votes for
     the midpoint: the holder's long sides vote along its long midline and its short sides
-    along the short one, so its centre is where the two cross; edges of anything else
-    scatter or do not pair. The pairing needs the side to within about 1 px at 1/4 scale
-    (2 % of a 160 px side), much less than ``size_tolerance``: a configured pixel size a
-    few per cent off (commissioning passes 5 %) would pair nothing. So the holder's scale
+    along the short one, so its centre is where the two cross (the two kinds of votes are
+    gathered apart and a peak needs both); edges of anything else scatter or do not
+    pair. The pairing needs the side to within about 1 px at 1/4 scale (2 % of a 160 px
+    side), much less than ``size_tolerance``: a configured pixel size a few per cent off
+    (commissioning passes 5 %) would pair nothing. So the holder's scale
     in the image is measured first (:func:`_pair_scales`) and the votes cast at that size.
     At each peak the side directions are the dominant gradient orientation (mod 90 deg)
     around it, and the long side is the assignment whose outline has the stronger gradient.
@@ -314,8 +315,14 @@ def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int
     ei, di = np.nonzero(ok)
     cx = np.rint(xs[ei] + half[di] * nx[ei]).astype(np.int64)
     cy = np.rint(ys[ei] + half[di] * ny[ei]).astype(np.int64)
-    acc = np.bincount(cy * sw + cx, minlength=sh * sw)
-    A = cv2.GaussianBlur(acc.reshape(sh, sw).astype(np.float32), (0, 0), 1.2)
+    # the long sides' votes (pairs a short side apart) and the short sides' apart: the
+    # centre is where both are, a bump along one midline (a plate's ends, a row of floor
+    # holes pairing at one of the distances) has one only
+    at = cy * sw + cx
+    A_s, A_l = (cv2.GaussianBlur(np.bincount(at[di % 2 == k], minlength=sh * sw)
+                                 .reshape(sh, sw).astype(np.float32), (0, 0), 1.2)
+                for k in (0, 1))
+    A = np.sqrt(A_s * A_l) + 0.25 * (A_s + A_l)
     peaks_mask = (cv2.dilate(A, np.ones((5, 5), np.uint8)) <= A) & (0.25 * A.max() < A)
     py, px = np.nonzero(peaks_mask)
     order = np.argsort(-A[py, px])[:max_peaks]
