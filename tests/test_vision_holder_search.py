@@ -210,3 +210,37 @@ def test_the_centre_is_where_both_midlines_vote() -> None:
     det = track_holder(img, expected_size_px=(440.0, 190.0))
     assert det.ok, det.reason
     assert np.max(np.linalg.norm(order_corners(det.corners_px, held) - held, axis=1)) < 0.3
+
+
+def _beside_a_bright_rectangle(gap_px: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A dark 378 x 169 px holder (25 DN on a 60 DN floor) square to the frame, and ``gap_px``
+    above it a white 247 x 160 px rectangle at 42 deg (230 DN): corpus #463 of seed 7100
+    (the second rectangle of the "distractors"). Blur 0.8 px, noise 2 DN, exact areas."""
+    w, h = 1280, 720
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    img = np.full((h, w), 60.0, np.float32)
+    held = cv2.boxPoints(((640.3, 400.2), (378.0, 169.0), -1.5)).astype(float)
+    other = cv2.boxPoints(((0.0, 0.0), (247.0, 160.0), 42.0)).astype(float)
+    other += np.array([700.0, 400.2 - 84.5 - gap_px]) - other[np.argmax(other[:, 1])]
+    img += (230.0 - img) * coverage(Polygon(other), ras, (0, 0, w, h))
+    img += (25.0 - img) * coverage(Polygon(held), ras, (0, 0, w, h))
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    img += np.random.default_rng(seed).normal(0, 2.0, img.shape).astype(np.float32)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), held
+
+
+@pytest.mark.parametrize("gap_px", [10.0, 40.0])
+def test_a_peaks_side_directions_from_its_own_voters(gap_px: float) -> None:
+    """The white rectangle's edges, four times the holder's contrast, dominate every edge
+    around the holder's centre: its voted box lies at 42 deg, 155-165 px off at a corner.
+    Where every box failed, the boxes are voted again with each peak's side directions
+    from the edge pixels whose votes made it: the holder is found."""
+    img, held = _beside_a_bright_rectangle(gap_px)
+    gray = img.astype(np.float32)
+    first = holder_search._vote_candidates(gray, (378.0, 169.0), 15.0)[0][1]
+    assert np.max(np.linalg.norm(order_corners(first, held) - held, axis=1)) > 100.0
+    again = holder_search.voted_by_voters(gray, (378.0, 169.0), 15.0, 0.12)[0]
+    assert np.max(np.linalg.norm(order_corners(again, held) - held, axis=1)) < 4.0
+    det = track_holder(img, expected_size_px=(378.0, 169.0))
+    assert det.ok, det.reason
+    assert np.max(np.linalg.norm(order_corners(det.corners_px, held) - held, axis=1)) < 0.1

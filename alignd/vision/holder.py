@@ -56,7 +56,7 @@ from alignd.vision.holder_bands import REACH as BAND_REACH
 from alignd.vision.holder_bands import SideProfiles, read_sides, side_bands
 from alignd.vision.holder_neighbours import REACH as NEIGHBOUR_REACH
 from alignd.vision.holder_neighbours import neighbour_steps, without_neighbours
-from alignd.vision.holder_search import search_candidates
+from alignd.vision.holder_search import search_candidates, voted_by_voters
 from alignd.vision.holder_square import square_sides
 from alignd.vision.holder_steps import inner_step, side_frame
 from alignd.vision.lens import Lens
@@ -375,6 +375,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         gray = as_gray(gray, "top image")  # wants floats (any other was converted above)
     check_usable(gray, min_contrast, "top image")
     tried: list[np.ndarray] = []
+    tried_boxes: list[np.ndarray] = []
     rough: list[np.ndarray] = []  # boxes refused for a side's scatter alone (second pass)
     last: HolderDetection | None = None
     # the voted boxes take at most max_candidates tries, and the threshold ladder's, which
@@ -389,6 +390,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         if len(tried) >= max_candidates + _LADDER_TRIES:
             break
         tried.append(ctr)
+        tried_boxes.append(order_corners(box))
         try:
             det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
                           min_contrast, max_rms_px, passes, lens, size_tolerance,
@@ -418,6 +420,22 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
             continue
         if det.ok:
             return det
+    if expected_size_px is not None and tried:
+        for box in voted_by_voters(gray, expected_size_px, min_contrast, size_tolerance,
+                                   max_candidates):
+            if any(_shift(order_corners(box, b), b) < 8.0 for b in tried_boxes):
+                continue  # (refined already)
+            try:
+                det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
+                              min_contrast, max_rms_px, passes, lens, size_tolerance,
+                              refine == "profile")
+                det = _looked_again(gray, det, polarity, expected_size_px, hint_arr,
+                                    min_contrast, max_rms_px, passes, lens, size_tolerance,
+                                    refine == "profile")
+            except VisionError:
+                continue
+            if det.ok:
+                return det
     if last is None and not tried:
         raise VisionError("top image: no holder found (no rectangular target of either "
                           "polarity" + (f" near {expected_size_px[0]:.0f} x "

@@ -34,18 +34,39 @@ def search_candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | 
     out (peaks in texture; the corpus' holder never scored under 0.36 of the best).
     """
     if expected_size_px is not None:
-        voted = _vote_candidates(gray, expected_size_px, min_contrast,
-                                 size_tolerance=size_tolerance)
-        strong = [(pol, box) for score, box, pol in voted
-                  if score >= _MIN_SUPPORT_RATIO * voted[0][0]]
-        # the holder's four sides contrast the same way: a box whose outline is darker
-        # outside on some sides and brighter on others (it straddles two objects) is
-        # refined only after every box that could be the holder
-        ranked = [box for pol, box in strong if pol != "mixed"] + \
-            [box for pol, box in strong if pol == "mixed"]
-        yield from ranked[:max_voted]
+        yield from _ranked(_vote_candidates(gray, expected_size_px, min_contrast,
+                                            size_tolerance=size_tolerance), max_voted)
     for _score, box, _pol in _candidates(gray, expected_size_px, polarity):
         yield box
+
+
+def voted_by_voters(gray: np.ndarray, expected_size_px: tuple[float, float],
+                    min_contrast: float, size_tolerance: float, max_voted: int | None = None
+                    ) -> list[np.ndarray]:
+    """The voted boxes again, each peak's side directions taken from the edge pixels whose
+    votes made it rather than from every edge pixel around it: for a frame where every
+    box of :func:`search_candidates` failed. Beside a holder of low contrast, a brighter
+    object's edges (a second rectangle, a cable) outweigh its sides around its centre and
+    turn its box; taken first, these directions changed frames found right (a box a
+    degree elsewhere refines to other sides in a few), so they come second."""
+    return _ranked(_vote_candidates(gray, expected_size_px, min_contrast,
+                                    size_tolerance=size_tolerance, by_voters=True), max_voted)
+
+
+def _ranked(voted: list[tuple[float, np.ndarray, str]], max_voted: int | None
+            ) -> list[np.ndarray]:
+    """The voted boxes to refine, in order: those of a tenth of the best one's outline
+    score or more, a box whose sides contrast both ways last."""
+    if not voted:
+        return []
+    strong = [(pol, box) for score, box, pol in voted
+              if score >= _MIN_SUPPORT_RATIO * voted[0][0]]
+    # the holder's four sides contrast the same way: a box whose outline is darker
+    # outside on some sides and brighter on others (it straddles two objects) is
+    # refined only after every box that could be the holder
+    ranked = [box for pol, box in strong if pol != "mixed"] + \
+        [box for pol, box in strong if pol == "mixed"]
+    return ranked[:max_voted]
 
 
 def _candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
@@ -208,8 +229,8 @@ class _EdgeMap:
 
 
 def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
-                     min_contrast: float, max_peaks: int = 12, size_tolerance: float = 0.12
-                     ) -> list[tuple[float, np.ndarray, str]]:
+                     min_contrast: float, max_peaks: int = 12, size_tolerance: float = 0.12,
+                     by_voters: bool = False) -> list[tuple[float, np.ndarray, str]]:
     """Rectangles of the expected size found by centre voting, threshold-ladder free.
 
     At 1/4 scale every significant gradient pixel (beyond 4 noise sigma and twice the
@@ -223,7 +244,8 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
     (commissioning passes 5 %) would pair nothing. So the holder's scale
     in the image is measured first (:func:`_pair_scales`) and the votes cast at that size.
     At each peak the side directions are the dominant gradient orientation (mod 90 deg)
-    around it, and the long side is the assignment whose outline has the stronger gradient.
+    around it (``by_voters``: of the edge pixels whose votes made it), and the long side is
+    the assignment whose outline has the stronger gradient.
     """
     h, w = gray.shape
     small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
@@ -247,7 +269,7 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
     out = []
     scales = _pair_scales(em, (eS, eL), size_tolerance)
     for scale in scales:  # as many peaks in all as one size had
-        out += _vote_at_size(em, eL * scale, eS * scale, max_peaks // len(scales))
+        out += _vote_at_size(em, eL * scale, eS * scale, max_peaks // len(scales), by_voters)
     out.sort(key=lambda t: -t[0])
     return out
 
@@ -299,7 +321,7 @@ def _pair_scales(em: _EdgeMap, sides: tuple[float, float], tolerance: float) -> 
     return [float(grid[k]), 1.0]
 
 
-def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int
+def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int, by_voters: bool = False
                   ) -> list[tuple[float, np.ndarray, str]]:
     """Centre voting (see :func:`_vote_candidates`) for a holder of eL x eS (1/4-scale px).
 
@@ -335,8 +357,15 @@ def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int
     if n_p == 0:
         return []
     # the side directions: the dominant gradient orientation (mod 90 deg) around each peak
+    # (by_voters: of the edge pixels whose votes landed within 2.5 px of it; all around a
+    # peak with none)
     theta_px = np.degrees(np.arctan2(ny, nx)) % 90.0
     pi, ni = np.nonzero(near)
+    if by_voters:
+        voter = ((cx[None] - ctrs[:, :1]) ** 2 + (cy[None] - ctrs[:, 1:]) ** 2) <= 2.5 ** 2
+        pv, vi = np.nonzero(voter)
+        pn, nn = np.nonzero(near & ~np.any(voter, axis=1)[:, None])
+        pi, ni = np.concatenate([pv, pn]), np.concatenate([ei[vi], nn])
     th, wt = theta_px[ni], m[ni]
     hist = np.bincount(pi * 90 + th.astype(int) % 90, weights=wt,
                        minlength=n_p * 90).reshape(n_p, 90)
