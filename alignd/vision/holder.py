@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -378,6 +379,24 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     tried_boxes: list[np.ndarray] = []
     rough: list[np.ndarray] = []  # boxes refused for a side's scatter alone (second pass)
     last: HolderDetection | None = None
+
+    def measure(box: np.ndarray, rms_px: float) -> HolderDetection:
+        """``box`` refined and checked (VisionError where its sides cannot be located)."""
+        det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
+                      min_contrast, rms_px, passes, lens, size_tolerance, refine == "profile")
+        return _looked_again(gray, det, polarity, expected_size_px, hint_arr, min_contrast,
+                             rms_px, passes, lens, size_tolerance, refine == "profile")
+
+    def later() -> Iterator[tuple[np.ndarray, float]]:
+        """Once every box has failed: the rough ones allowing more scatter, then the boxes
+        voted again with their peaks' own directions, those not refined yet."""
+        yield from ((box, max_rms_px * _SECOND_RMS_FACTOR) for box in rough)
+        if expected_size_px is not None and tried:
+            for box in voted_by_voters(gray, expected_size_px, min_contrast, size_tolerance,
+                                       max_candidates):
+                if not any(_shift(order_corners(box, b), b) < 8.0 for b in tried_boxes):
+                    yield box, max_rms_px
+
     # the voted boxes take at most max_candidates tries, and the threshold ladder's, which
     # follow, a few more: where the holder's two sizes pair at different scales (a plate
     # beside one side, 5 % of the holder), its sides vote along one midline only, every
@@ -392,12 +411,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         tried.append(ctr)
         tried_boxes.append(order_corners(box))
         try:
-            det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
-                          min_contrast, max_rms_px, passes, lens, size_tolerance,
-                          refine == "profile")
-            det = _looked_again(gray, det, polarity, expected_size_px, hint_arr,
-                                min_contrast, max_rms_px, passes, lens, size_tolerance,
-                                refine == "profile")
+            det = measure(box, max_rms_px)
         except VisionError as exc:
             reasons.append(f"candidate at ({ctr[0]:.0f}, {ctr[1]:.0f}): {exc}")
             continue
@@ -407,35 +421,13 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         last = det
         if _only_rough(det, max_rms_px):
             rough.append(box)
-    for box in rough:
-        loose = max_rms_px * _SECOND_RMS_FACTOR
+    for box, rms_px in later():
         try:
-            det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
-                          min_contrast, loose, passes, lens, size_tolerance,
-                          refine == "profile")
-            det = _looked_again(gray, det, polarity, expected_size_px, hint_arr,
-                                min_contrast, loose, passes, lens, size_tolerance,
-                                refine == "profile")
+            det = measure(box, rms_px)
         except VisionError:
             continue
         if det.ok:
             return det
-    if expected_size_px is not None and tried:
-        for box in voted_by_voters(gray, expected_size_px, min_contrast, size_tolerance,
-                                   max_candidates):
-            if any(_shift(order_corners(box, b), b) < 8.0 for b in tried_boxes):
-                continue  # (refined already)
-            try:
-                det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
-                              min_contrast, max_rms_px, passes, lens, size_tolerance,
-                              refine == "profile")
-                det = _looked_again(gray, det, polarity, expected_size_px, hint_arr,
-                                    min_contrast, max_rms_px, passes, lens, size_tolerance,
-                                    refine == "profile")
-            except VisionError:
-                continue
-            if det.ok:
-                return det
     if last is None and not tried:
         raise VisionError("top image: no holder found (no rectangular target of either "
                           "polarity" + (f" near {expected_size_px[0]:.0f} x "
