@@ -375,8 +375,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     if gray.dtype == np.uint8:  # the 8-bit frame (or its despeckled copy): the search
         gray = as_gray(gray, "top image")  # wants floats (any other was converted above)
     check_usable(gray, min_contrast, "top image")
-    tried: list[np.ndarray] = []
-    tried_boxes: list[np.ndarray] = []
+    tried: list[np.ndarray] = []  # the boxes refined, their corners ordered
     rough: list[np.ndarray] = []  # boxes refused for a side's scatter alone (second pass)
     last: HolderDetection | None = None
 
@@ -394,7 +393,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         if expected_size_px is not None and tried:
             for box in voted_by_voters(gray, expected_size_px, min_contrast, size_tolerance,
                                        max_candidates):
-                if not any(_shift(order_corners(box, b), b) < 8.0 for b in tried_boxes):
+                if not any(_shift(order_corners(box, b), b) < 8.0 for b in tried):
                     yield box, max_rms_px
 
     # the voted boxes take at most max_candidates tries, and the threshold ladder's, which
@@ -404,12 +403,11 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     for box in search_candidates(gray, expected_size_px, polarity, min_contrast,
                                  size_tolerance, max_voted=max_candidates):
         ctr = box.mean(axis=0)
-        if any(np.linalg.norm(ctr - t) < 8.0 for t in tried):
+        if any(np.linalg.norm(ctr - t.mean(axis=0)) < 8.0 for t in tried):
             continue
         if len(tried) >= max_candidates + _LADDER_TRIES:
             break
-        tried.append(ctr)
-        tried_boxes.append(order_corners(box))
+        tried.append(order_corners(box))
         try:
             det = measure(box, max_rms_px)
         except VisionError as exc:

@@ -360,12 +360,13 @@ def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int, by_voters:
     # (by_voters: of the edge pixels whose votes landed within 2.5 px of it; all around a
     # peak with none)
     theta_px = np.degrees(np.arctan2(ny, nx)) % 90.0
-    pi, ni = np.nonzero(near)
     if by_voters:
         voter = ((cx[None] - ctrs[:, :1]) ** 2 + (cy[None] - ctrs[:, 1:]) ** 2) <= 2.5 ** 2
         pv, vi = np.nonzero(voter)
         pn, nn = np.nonzero(near & ~np.any(voter, axis=1)[:, None])
         pi, ni = np.concatenate([pv, pn]), np.concatenate([ei[vi], nn])
+    else:
+        pi, ni = np.nonzero(near)
     th, wt = theta_px[ni], m[ni]
     hist = np.bincount(pi * 90 + th.astype(int) % 90, weights=wt,
                        minlength=n_p * 90).reshape(n_p, 90)
