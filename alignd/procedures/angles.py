@@ -130,6 +130,94 @@ def holder_image_angles(points: np.ndarray) -> np.ndarray:
     return out
 
 
+def nearest_order(corners: np.ndarray, prev: np.ndarray) -> np.ndarray:
+    """``corners`` (4, 2, in cyclic order) rolled to the cyclic order nearest ``prev``."""
+    c = np.asarray(corners, float)
+    costs = [float(np.linalg.norm(np.roll(c, -k, axis=0) - prev, axis=1).sum())
+             for k in range(4)]
+    return np.roll(c, -int(np.argmin(costs)), axis=0)
+
+
+# Within this angle (deg) of turning its diagonal level in the image (a corner straight
+# left of the centre), where the image's corner order changes, a holder's order comes from
+# holder.size_mm: what its noise would otherwise decide, frame by frame
+NEAR_DIAGONAL_DEG = 5.0
+# sides within this fraction of each other: a square holder, whose sides cannot tell u from v
+SQUARE_WITHIN = 0.05
+
+
+@dataclass(frozen=True)
+class ReferenceOrder:
+    """The reference frame's corners in the holder frame's order; ``swapped``: the image's
+    order has u and v the other way round from holder.size_mm, clear of the diagonal (the
+    config's lengths are in the other order: docs/configure.md)."""
+
+    corners: np.ndarray
+    swapped: bool
+    u_px: float  # the length of the image's u side (corner 0 -> 1) and v side, px
+    v_px: float
+    # swapped: the config's frame is the image's turned by this many corners (1 or 3), its u
+    # pointing right (as it did before the holder turned past its diagonal)
+    turn: int = 0
+
+    def image_target_mm(self, target_mm: tuple[float, float]) -> tuple[float, float]:
+        """``target_mm`` of the config's frame in the image's (``swapped``: the holder.
+        target_mm that names the same point with holder.size_mm in the image's order)."""
+        tu, tv = target_mm
+        return {0: (tu, tv), 1: (-tv, tu), 3: (tv, -tu)}[self.turn]
+
+
+def reference_order(corners: np.ndarray, size_mm: tuple[float, float]) -> ReferenceOrder:
+    """The corners (image order: corner 0 top-left, clockwise) of the frame that defines
+    the holder frame (turntable 0) in the config's order.
+
+    The image's order is the holder frame (docs/configure.md) unless the holder lies within
+    NEAR_DIAGONAL_DEG of a corner straight left of its centre: there the order flips
+    between two frames with noise alone (a 40 x 25 mm holder at 32 deg in the image), the
+    target point then turning a quarter round the holder. Its order is then the one whose
+    u side has the length holder.size_mm gives u, of the two its u pointing right.
+    """
+    c = np.asarray(corners, float)
+    d = c - c.mean(axis=0)
+    ang = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
+    near = float(min(ang.min() + 180.0, 180.0 - ang.max())) < NEAR_DIAGONAL_DEG
+
+    def sides(p: np.ndarray) -> tuple[float, float]:
+        u = ((p[1] - p[0]) + (p[2] - p[3])) / 2
+        v = ((p[3] - p[0]) + (p[2] - p[1])) / 2
+        return float(np.hypot(*u)), float(np.hypot(*v))
+
+    su, sv = size_mm
+    a, b = sides(c)
+    square = abs(su - sv) <= SQUARE_WITHIN * max(su, sv)
+    if square or (a >= b) == (su >= sv):
+        return ReferenceOrder(c, False, a, b)
+    # one corner on: u along the other pair of sides, the one of its two senses pointing
+    # right (the image's own order just before the holder turned past its diagonal)
+    k = max((1, 3), key=lambda k: float(((c[(k + 1) % 4] - c[k]) + (c[(k + 2) % 4]
+                                                                    - c[(k + 3) % 4]))[0]))
+    if not near:
+        return ReferenceOrder(c, True, a, b, k)
+    best = np.roll(c, -k, axis=0)
+    return ReferenceOrder(best, False, *sides(best))
+
+
+def holder_frame_order(points: np.ndarray, readback_deg: np.ndarray | list[float],
+                       size_mm: tuple[float, float]) -> tuple[np.ndarray, ReferenceOrder | None]:
+    """Every frame's corners in the holder frame's order: the tracked frame nearest
+    turntable 0 by :func:`reference_order`, the others followed from it frame by frame
+    (:func:`consistent_order`); and that frame's ReferenceOrder (None: nothing tracked)."""
+    p = np.asarray(points, float)
+    ok = np.flatnonzero(np.all(np.isfinite(p), axis=(1, 2)))
+    if len(ok) == 0:
+        return p, None
+    ref = int(ok[np.argmin(np.abs(np.asarray(readback_deg, float)[ok]))])
+    r = reference_order(p[ref], size_mm)
+    p = p.copy()
+    p[ref] = r.corners
+    return consistent_order(p, ref), r
+
+
 def consistent_order(points: np.ndarray, ref: int) -> np.ndarray:
     """The corners of every frame in the cyclic order of frame ``ref``, followed frame by
     frame outwards from it (a tracker restarts its order when the holder turns far; the
@@ -142,9 +230,7 @@ def consistent_order(points: np.ndarray, ref: int) -> np.ndarray:
         i = ref + direction
         while 0 <= i < n:
             if np.all(np.isfinite(p[i])) and np.all(np.isfinite(prev)):
-                costs = [float(np.linalg.norm(np.roll(p[i], -k, axis=0) - prev, axis=1).sum())
-                         for k in range(4)]
-                p[i] = np.roll(p[i], -int(np.argmin(costs)), axis=0)
+                p[i] = nearest_order(p[i], prev)
                 prev = p[i]
             i += direction
     return p

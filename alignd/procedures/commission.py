@@ -36,7 +36,7 @@ import threading
 import time
 import uuid
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
@@ -45,10 +45,13 @@ from alignd.config import AligndConfig, config_hash
 from alignd.errors import AligndError, ConfigError, DeviceError, SolveError, StateError, VisionError
 from alignd.procedures.angles import (
     AngleMap,
-    consistent_order,
+    ReferenceOrder,
     fit_angle_error,
     fit_slope,
+    holder_frame_order,
     holder_image_angles,
+    nearest_order,
+    reference_order,
 )
 from alignd.procedures.calibrate import configured_pixel_size_um
 from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_progress
@@ -298,6 +301,7 @@ class _Commission:
         self.motion_s = 0.0
         self.rim_centre: np.ndarray | None = None
         self.start_pose: _Pose | None = None
+        self.start_order: ReferenceOrder | None = None  # its corners' holder-frame order
         self.holder_px: tuple[float, float] = (math.nan, math.nan)
         self.axis_px: np.ndarray = np.full(2, np.nan)
 
@@ -329,15 +333,16 @@ class _Commission:
         cam = self.rig.camera("top")
         assert cam is not None and self.tools is not None
         settled = cam.clock.now()
-        found = []
+        found: list[np.ndarray] = []
         warning = ""
         for j in range(frames):
             frame = grab_fresh(cam, settled)
             self.n_frames += 1
             self.recorder.frame(frame.image, f"commission-{label}-{j}")
             det = self.tools.track(frame)
-            if det.ok:
-                found.append(det.corners_px)
+            if det.ok:  # (one order for the frames averaged)
+                found.append(nearest_order(det.corners_px, found[0]) if found
+                             else det.corners_px)
                 warning = warning or det.warning
         if not found:
             return None
@@ -454,6 +459,10 @@ class _Commission:
         """Holder found and its roll; the rim's eccentricity and the camera's zenith."""
         self._emit("top", "top camera: holder and rim")
         pose = self._need("start")
+        # the holder frame's order (by holder.size_mm where the holder's diagonal lies
+        # level in the image and the image's order is the noise's)
+        self.start_order = reference_order(pose.corners, self.cfg.holder.size_mm)
+        pose = replace(pose, corners=self.start_order.corners)
         u = ((pose.corners[1] - pose.corners[0]) + (pose.corners[2] - pose.corners[3])) / 2
         roll = math.degrees(math.atan2(u[1], u[0]))
         self.start_pose = pose
@@ -772,18 +781,25 @@ class _Commission:
                f"config holder.size_mm {su:g} x {sv:g} ({rel_u * 100:+.1f} %, "
                f"{rel_v * 100:+.1f} %)")
         name = ""
+        fix: dict[str, object] | None = None
         if swapped:
             verdict, name = "fail", "u and v swapped"
-            msg += (": u and v are swapped (the camera is turned by 90 deg against the "
-                    "holder frame of the config): swap size_mm and target_mm's components, "
-                    "see docs/configure.md")
+            order = self.start_order
+            assert order is not None  # _top_camera_static found the holder
+            tu, tv = (t + 0.0 for t in order.image_target_mm(self.cfg.holder.target_mm))
+            fix = {"holder.size_mm": [sv, su], "holder.target_mm": [tu, tv]}
+            msg += (": u and v are swapped (the camera is turned past the holder's diagonal "
+                    "against the holder frame of the config): set holder.size_mm: "
+                    f"[{sv:g}, {su:g}] and holder.target_mm: [{tu:g}, {tv:g}] (the same point "
+                    "in the image's frame, if your u pointed right in the image), see "
+                    "docs/configure.md")
         elif verdict != "pass":
             name = "holder size wrong"
             msg += f": set holder.size_mm: [{mm_u:.2f}, {mm_v:.2f}] (measure it again)"
+            fix = {"holder.size_mm": [round(mm_u, 2), round(mm_v, 2)]}
         self._add(Finding("holder.size", verdict, msg, value=[mm_u, mm_v],
                           sigma=[mm_u * rel_sig, mm_v * rel_sig], expected=[su, sv], unit="mm",
-                          name=name, config_fix=None if verdict == "pass" or swapped
-                          else {"holder.size_mm": [round(mm_u, 2), round(mm_v, 2)]}))
+                          name=name, config_fix=fix))
 
     def _turntable(self) -> None:
         """Wide sweep: direction, angle scale, runout; backlash from both sides at 0."""
@@ -827,9 +843,7 @@ class _Commission:
         # perspective first (as every sweep does): a tilted camera images the holder's circle
         # as an ellipse (a harmonic-2 motion that is no part of the bearing's) and its edges
         # turned by a little more or less than the table (no part of the encoder's error)
-        tracked = np.flatnonzero(ok)
-        ref = int(tracked[np.argmin(np.abs(rb[tracked]))])
-        ordered = consistent_order(points, ref)
+        ordered, _ = holder_frame_order(points, rb, self.cfg.holder.size_mm)
         rectified = apply_h(rectifier(ordered, self.cfg.holder), ordered)
         img_deg = holder_image_angles(rectified)
         fit = fit_slope(rb, img_deg)

@@ -23,7 +23,12 @@ from scipy.stats import chi2 as chi2_dist
 
 from alignd.config import AligndConfig, HolderConfig
 from alignd.errors import ConfigError, SolveError, VisionError
-from alignd.procedures.angles import AngleMap, check_sweep_angles
+from alignd.procedures.angles import (
+    AngleMap,
+    check_sweep_angles,
+    holder_frame_order,
+    nearest_order,
+)
 from alignd.procedures.budget import Budget, Contribution, u_of
 from alignd.procedures.continuous import frame_angles, run_continuous_sweep
 from alignd.procedures.events import ProgressCallback, ProgressEvent
@@ -522,7 +527,7 @@ def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration
         settled = cam.clock.now()
         t1 = time.perf_counter()
         t_motion += t1 - t0
-        found = []
+        found: list[np.ndarray] = []
         why = ""
         for j in range(max(frames_per_step, 1)):
             t1 = time.perf_counter()
@@ -533,8 +538,9 @@ def run_sweep(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration
             t_grab += t2 - t1
             t_track += t3 - t2
             hashes.append(recorder.frame(frame.image, f"{kind}-{iteration}-{i:03d}-{j}"))
-            if det.ok:
-                found.append(det.corners_px)
+            if det.ok:  # (one order for the step's frames: they are averaged)
+                found.append(nearest_order(det.corners_px, found[0]) if found
+                             else det.corners_px)
                 if det.warning:
                     warned += 1
                     warning = warning or det.warning
@@ -745,7 +751,7 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
                         progress=progress, recorder=recorder,
                         frames_per_step=plan.frames_per_step, angles=plan.angles(),
                         approach=approach)
-    raw = dataclasses.replace(raw, points=_one_corner_order(raw))
+    raw = dataclasses.replace(raw, points=_one_corner_order(raw, holder))
     data = dataclasses.replace(raw, readback_deg=amap.image_angles(raw.readback_deg).tolist())
     n_ok = int(data.tracked.sum())
     n = len(data.readback_deg)
@@ -820,17 +826,27 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     return data, m, warning
 
 
-def _one_corner_order(data: SweepData) -> np.ndarray:
+def _one_corner_order(data: SweepData, holder: HolderConfig) -> np.ndarray:
     """The corners of every frame in the order of the frame nearest turntable 0 (the
     holder frame of the config): a tracker may restart its order when the holder has
-    turned far, as over a +-45 deg sweep, which would turn the target round the holder."""
-    from alignd.procedures.angles import consistent_order
-
-    ok = np.flatnonzero(data.tracked)
-    if len(ok) == 0:
-        return data.points
-    ref = int(ok[np.argmin(np.abs(np.asarray(data.readback_deg)[ok]))])
-    return consistent_order(data.points, ref)
+    turned far, as over a +-45 deg sweep, which would turn the target round the holder.
+    ConfigError where that frame's u and v are the other way round from holder.size_mm
+    (before anything is fitted or moved on it)."""
+    points, ref = holder_frame_order(data.points, data.readback_deg, holder.size_mm)
+    if ref is not None and ref.swapped:
+        su, sv = holder.size_mm
+        tu, tv = (t + 0.0 for t in ref.image_target_mm(holder.target_mm))  # (no -0)
+        raise ConfigError(
+            f"holder frame swapped: holder.size_mm [{su:g}, {sv:g}] gives u (corner 0 -> 1, "
+            f"the top side in the image) the {'longer' if su > sv else 'shorter'} side, but "
+            f"in the top image at turntable 0 u measures {ref.u_px:.0f} px and v "
+            f"{ref.v_px:.0f} px: the camera (or the holder) is turned past the holder's "
+            f"diagonal. Fix: set holder.size_mm: [{sv:g}, {su:g}] and holder.target_mm: "
+            f"[{tu:g}, {tv:g}] (the same point in the image's frame, if your u pointed right "
+            "in the image: check the target on the run's picture; docs/configure.md, the "
+            "holder frame), or run `alignctl commission`; no stage was moved on this "
+            "sweep's data")
+    return points
 
 
 def sweep_runout(rig: Rig, cfg: AligndConfig, tools: Tools, *, half_deg: float = 180.0,
