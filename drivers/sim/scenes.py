@@ -52,6 +52,7 @@ __all__ = [
     "RimSceneSample",
     "SideSceneSample",
     "TopSceneSample",
+    "Turn",
     "ellipse_conic",
     "hard_shadow_scene",
     "random_rim_scene",
@@ -395,9 +396,29 @@ def _speculars(rng: np.random.Generator, shape: tuple[int, int], n: int,
 
 
 # ---- top camera --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Turn:
+    """A top scene with the turntable turned: the holder, its sample plate, screws and label
+    turned by ``deg`` about ``axis_px`` (undistorted px; + turns the image clockwise, as the
+    design notes' R(a)); the floor, the disc (its faint texture too), the light, the cast
+    shadow's offset, the cables and the holder face's faint texture stay where they are.
+    The sensor noise is drawn from ``noise_seed`` (each frame its own)."""
+
+    deg: float
+    axis_px: tuple[float, float]
+    noise_seed: int
+
+
 def random_top_scene(rng: np.random.Generator, category: str | None = None,
-                     size_px: tuple[int, int] = (1280, 720)) -> TopSceneSample:
-    """One randomised top-camera frame with its exact corners (see the module docstring)."""
+                     size_px: tuple[int, int] = (1280, 720), *,
+                     turn: Turn | None = None) -> TopSceneSample:
+    """One randomised top-camera frame with its exact corners (see the module docstring).
+
+    ``turn``: the same scene (the same draws from ``rng``) with the holder turned (a sweep's
+    frame). Where the turn changes which of the scene's draws are kept (a cable or a
+    second rectangle clear of the holder in one frame and not in another), the frames
+    differ in more than the turn: compare their ``params``.
+    """
     cat = str(category or TOP_CATEGORIES[int(rng.integers(len(TOP_CATEGORIES)))])
     every = cat == "everything"
     distract = cat == "distractors" or (every and rng.random() < 0.7)
@@ -430,17 +451,29 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
     half = math.hypot(Lp, Sp + 2 * sample_th) / 2
     ctr = np.array([rng.uniform(margin + half, w - margin - half),
                     rng.uniform(margin + half, h - margin - half)])
-    holder = rectangle(ctr, Lp, Sp, angle)
+
+    def drawn(ctr: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """The holder, its sample plate (along side 0-1, outside it) and their hull."""
+        holder = rectangle(ctr, Lp, Sp, angle)
+        sample = None
+        if sample_th > 0:
+            t = math.radians(angle)
+            out_n = np.array([math.sin(t), -math.cos(t)])  # away from side 2-3
+            sample = np.array([holder[0], holder[1], holder[1] + out_n * sample_th,
+                               holder[0] + out_n * sample_th])
+        outline = holder if sample is None else np.vstack([holder, sample[2:]])
+        return holder, sample, cv2.convexHull(outline.astype(np.float32))[:, 0].astype(float)
+
+    holder, sample, hull = drawn(ctr, angle)
+    ctr0, hull0 = ctr, hull  # where the holder stands unturned (the disc is placed by it)
+    if turn is not None:
+        t = math.radians(turn.deg)
+        axis = np.asarray(turn.axis_px, float)
+        ctr = axis + np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]]) @ (
+            ctr - axis)
+        angle += turn.deg
+        holder, sample, hull = drawn(ctr, angle)
     corners = ras.distort(holder)
-    # the sample: a plate along side 0-1, outside the holder
-    sample = None
-    if sample_th > 0:
-        t = math.radians(angle)
-        out_n = np.array([math.sin(t), -math.cos(t)])  # away from side 2-3
-        sample = np.array([holder[0], holder[1], holder[1] + out_n * sample_th,
-                           holder[0] + out_n * sample_th])
-    outline = holder if sample is None else np.vstack([holder, sample[2:]])
-    hull = cv2.convexHull(outline.astype(np.float32))[:, 0].astype(float)
     hull_px = ras.distort(hull)
 
     # levels: floor, disc (brighter, darker or absent), holder of either polarity
@@ -489,12 +522,12 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
             _draw_circles(img, cs, r, np.full(len(cs), floor * 0.3))
     if disc_mode != "absent":
         e = float(rng.uniform(0.0, 0.2))
-        need = float(np.max(np.linalg.norm(hull - ctr, axis=1))) + 20
+        need = float(np.max(np.linalg.norm(hull0 - ctr0, axis=1))) + 20
         b = float(rng.uniform(need / 0.98 + 5, max(need / 0.98 + 6, 1.5 * w)))
         a = b / math.sqrt(1 - e * e)
         # the disc centre, offset from the holder so that the holder stays inside
         off = rng.uniform(-1, 1, 2) * max(b - need, 0.0) * 0.5
-        dctr = ctr + off
+        dctr = ctr0 + off
         dang = float(rng.uniform(-90, 90))
         ring = rng.random() < 0.4
         disc_tex = disc + _texture(rng, (h, w), rng.uniform(2, 30), rng.uniform(0.5, 3))
@@ -580,8 +613,9 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
     blur = float(rng.uniform(0.8, 2.0)) if optics else float(rng.uniform(0.3, 1.0))
     read_noise = float(rng.uniform(0.5, 2.5))  # (drawn in this order: the corpus stays)
     electrons_per_dn = float(rng.uniform(20, 80))
-    out = _finish(img, rng, blur=blur, read_noise=read_noise,
-                  electrons_per_dn=electrons_per_dn, enc=enc)
+    out = _finish(img, rng if turn is None else np.random.default_rng(turn.noise_seed),
+                  blur=blur, read_noise=read_noise, electrons_per_dn=electrons_per_dn,
+                  enc=enc)
     # the sensor's noise model (8-bit DN), as bench/vision_bounds.py's bound needs it
     params.update(blur_px=blur, read_noise_dn=read_noise, electrons_per_dn=electrons_per_dn)
     return TopSceneSample(out, cat, corners, (max(L_mm, S_mm), min(L_mm, S_mm)), px_um, pol,
