@@ -865,7 +865,10 @@ def main(argv: Sequence[str] | None = None, *, rig_factory: RigFactory | None = 
         for cam in cfg.cameras:
             curve = "" if is_linear(cam.gamma) else \
                 f" (tone curve: {curve_text(cam.gamma)}, undone)"
-            print(f"  camera {cam.role}: {cam.source}{curve}")
+            lens = "" if cam.lens is None else (
+                f" (lens: k1 {cam.lens.k1:g} at {cam.lens.focal_px:g} px focal length"
+                + (", straightened)" if cam.role == "top" else ", not used by the side camera)"))
+            print(f"  camera {cam.role}: {cam.source}{curve}{lens}")
         return EXIT_OK
     if not args.config:
         parser.error("--config FILE is required (or --check-config FILE)")

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +35,7 @@ import numpy as np
 
 from alignd.store import atomic_write_bytes, jsonable
 from alignd.textfmt import wrap_words
+from alignd.vision.lens import Lens
 
 WIDTH = 960
 PLOT_H = 360  # the row holding the zoom (square) and the convergence plot
@@ -241,6 +242,19 @@ def _um_per_px(run: dict[str, Any]) -> float | None:
     return None if px is None else float(px)
 
 
+def _in_frame(run: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
+    """Undistorted image points -> the frame's pixels, through the top camera's configured
+    lens (the sweeps are measured undistorted; the frame drawn on is not)."""
+    cams = (run.get("config") or {}).get("cameras") or []
+    lens = next((c.get("lens") for c in cams if isinstance(c, dict) and c.get("role") == "top"),
+                None)
+    if not isinstance(lens, dict):
+        return lambda p: np.asarray(p, float)
+    model = Lens(float(lens["focal_px"]), (float(lens["principal_px"][0]),
+                                            float(lens["principal_px"][1])), float(lens["k1"]))
+    return lambda p: model.distort(np.asarray(p, float).reshape(-1, 2)).reshape(np.shape(p))
+
+
 def _nice(x: float) -> float:
     """The largest 1, 2 or 5 times a power of ten not above ``x``."""
     p = 10 ** math.floor(math.log10(x))
@@ -271,11 +285,12 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
     H = view.shape[0]
 
     # tracked paths (each feature keeps its index across frames; null = missed)
+    to_frame = _in_frame(run)
     frames = ((sweep or {}).get("sweep") or {}).get("frames") or []
     n_feat = max((len(f.get("features") or []) for f in frames), default=0)
     for k in range(n_feat):
         colour = PATH_COLOURS[k % len(PATH_COLOURS)]
-        pts = [f["features"][k] for f in frames
+        pts = [to_frame(f["features"][k]) for f in frames
                if k < len(f.get("features") or []) and f["features"][k] is not None]
         if len(pts) >= 2:
             poly = np.array([_pt(np.asarray(p, float), scale) for p in pts], np.int32)
@@ -286,7 +301,7 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
     rec = _centre_record(run)
     if rec is not None:
         c = np.asarray(_find(rec, ("centre_px", "center_px")), float)
-        cc = _pt(c, scale)
+        cc = _pt(to_frame(c), scale)
         cv2.drawMarker(view, cc, (0, 0, 0), cv2.MARKER_CROSS, 26, 4, cv2.LINE_AA)
         cv2.drawMarker(view, cc, CENTRE_COLOUR, cv2.MARKER_CROSS, 24, 2, cv2.LINE_AA)
         target = _find(rec, ("target_px",))
@@ -295,7 +310,7 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
         if target is None and off is not None:
             target = c + _rot(angle) @ np.asarray(off, float)
         if target is not None:
-            tt = _pt(np.asarray(target, float), scale)
+            tt = _pt(to_frame(np.asarray(target, float)), scale)
             cv2.line(view, cc, tt, TARGET_COLOUR, 1, cv2.LINE_AA)
             cv2.circle(view, tt, 7, TARGET_COLOUR, 2, cv2.LINE_AA)
 

@@ -115,6 +115,20 @@ NamedCurve = Literal["srgb", "bt709"]
 ToneCurve = float | NamedCurve
 
 
+class LensConfig(Strict):
+    """A lens' radial distortion (OpenCV's model, k1 alone), at the streamed frame size.
+
+    From a calibration: ``cv2.calibrateCamera``'s camera matrix (fx, or the mean of fx and
+    fy; cx, cy) and its first distortion coefficient (docs/configure.md).
+    """
+
+    focal_px: float = Field(..., gt=0, description="focal length in pixels (fx)")
+    principal_px: tuple[float, float] = Field(..., description=(
+        "principal point [cx, cy] in pixels"))
+    k1: float = Field(..., ge=-2.0, le=10.0, description=(
+        "radial coefficient in focal-length-normalised coordinates (negative: barrel)"))
+
+
 class CameraConfig(Strict):
     """A camera source (contract: camera sources in the design notes)."""
 
@@ -134,6 +148,11 @@ class CameraConfig(Strict):
         "corners 0.3 px off (up to 1.7); BT.709 frames undone as a pure power of 1.9 "
         "0.049 px, by name 0.037 (linear frames 0.037). A simulated camera draws its "
         "frames with it"))
+    lens: LensConfig | None = Field(None, description=(
+        "the lens' radial distortion (top camera). alignd straightens the holder's sides "
+        "with it and measures sweeps in the undistorted image. Unmodelled, a webcam's "
+        "barrel distortion shifts the target against the centre of rotation by tens of um "
+        "while the run reports 'aligned' (docs/configure.md). Unset: no distortion"))
 
 
 class FaultConfig(Strict):
@@ -191,6 +210,10 @@ class SimWorldConfig(Strict):
     turntable_backlash_deg: float = 0.002
     turntable_encoder_error_deg: float = 0.003
     top_camera_zenith_deg: float = 0.5
+    top_lens_k1: float = Field(0.0, ge=-1.0, le=10.0, description=(
+        "the top camera lens' radial distortion (OpenCV's k1 at the world camera's focal "
+        "length, 800 mm / pixel_size_um = 5000 px at 160 um/px, and principal point, "
+        "axis_px): what the lens does; cameras[].lens is what the config tells alignd"))
     noise_dn: float = 2.0
     # ---- what differs between rigs (commissioning finds these; see docs/configure.md) ----
     turntable_direction: Literal[1, -1] = Field(1, description=(

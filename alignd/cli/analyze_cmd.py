@@ -83,9 +83,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="camera: whose config gamma (with --config) the frames are held "
                         "against (default top)")
     p.add_argument("--config", metavar="FILE",
-                   help="take the holder size, the top camera's pixel size and gamma, and "
-                        "the side camera's regions and gamma from an alignd config (options "
-                        "given win)")
+                   help="take the holder size, the top camera's pixel size, gamma and "
+                        "lens, and the side camera's regions and gamma from an alignd config "
+                        "(options given win)")
     g = p.add_argument_group("rim")
     g.add_argument("--radius-mm", type=float, default=150.0, help="rim radius (default 150)")
     g.add_argument("--height-mm", type=float, default=800.0,
@@ -114,7 +114,7 @@ def _box(text: str) -> tuple[int, int, int, int]:
 
 def _apply_config(args: argparse.Namespace) -> None:
     """Fill unset options from ``--config`` (holder size, pixel size, side regions, the
-    camera's gamma)."""
+    camera's gamma, the top camera's lens)."""
     if args.config:
         from alignd.config import load_config
         from alignd.procedures.tools import expected_holder_px
@@ -129,6 +129,10 @@ def _apply_config(args: argparse.Namespace) -> None:
         seen_by = cfg.camera("side" if args.kind == "side" else "top")
         if args.gamma is None and seen_by is not None:
             args.gamma = seen_by.gamma
+        top = cfg.camera("top")
+        if not args.k1 and top is not None and top.lens is not None:  # cameras[].lens
+            args.k1, args.focal_px = top.lens.k1, top.lens.focal_px
+            args.principal = args.principal or top.lens.principal_px
     if isinstance(args.gamma, float) and not (math.isfinite(args.gamma)
                                               and 1.0 <= args.gamma <= 3.0):
         raise InputError(f"--gamma {args.gamma:g}: the camera's tone curve is within 1-3 (1: "

@@ -187,6 +187,9 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     taken for the holder; each frame's search is seeded with the previous frame's corners.
     The side camera's regions of interest come from ``side_camera``. Each camera's frames
     have its tone curve undone first (``cameras[].gamma``, :func:`alignd.vision.linearise`).
+    With the top camera's ``lens`` the holder's sides are straightened by it and its
+    corners are returned undistorted (every sweep, calibration and offset then in the
+    undistorted image).
     """
     from alignd import solve as solver
     from alignd.errors import StateError, VisionError
@@ -204,6 +207,9 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     last: list[vision.HolderDetection] = []
     cams = {role: cfg.camera(role) if cfg is not None else None for role in ("top", "side")}
     gammas = {role: cam.gamma if cam is not None else 1.0 for role, cam in cams.items()}
+    top_cam = cams["top"]
+    lens = None if top_cam is None or top_cam.lens is None else vision.Lens(
+        top_cam.lens.focal_px, top_cam.lens.principal_px, top_cam.lens.k1)
 
     def top(frame: Frame) -> np.ndarray:
         return vision.linearise(frame.gray, gammas["top"])
@@ -215,10 +221,15 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
         hint = last[0] if last else None
         try:
             det = vision.track_holder(top(frame), expected_size_px=expected, hint=hint,
-                                      size_tolerance=SIZE_TOLERANCE)
+                                      size_tolerance=SIZE_TOLERANCE, lens=lens)
         except VisionError as exc:
             return Corners(np.full((4, 2), np.nan), False, 0.0, str(exc))
         out = dataclasses.replace(as_corners(det), warning=det.clip_warning)
+        if out.ok and lens is not None:
+            # in the undistorted image, where the turntable turns the holder rigidly and
+            # the stages move it in straight lines (the corners stay frame pixels in det,
+            # the next frame's seed)
+            out = dataclasses.replace(out, corners_px=lens.undistort(out.corners_px))
         if out.ok and expected is not None:
             out = size_checked(out, expected)
         if out.ok:

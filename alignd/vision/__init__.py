@@ -21,6 +21,7 @@ from alignd.vision.holder import (
     order_corners,
     track_holder,
 )
+from alignd.vision.lens import Lens
 from alignd.vision.rim import (
     PlaneRectifier,
     RimFit,
@@ -40,6 +41,7 @@ from alignd.vision.side import (
 
 __all__ = [
     "HolderDetection",
+    "Lens",
     "PlaneRectifier",
     "RimFit",
     "SideMeasurement",

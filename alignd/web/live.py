@@ -132,7 +132,7 @@ class LiveView:
     def _draw_top(self, small: np.ndarray, full: np.ndarray, scale: float,
                   centre: Centre | None) -> dict[str, Any]:
         from alignd.procedures.sweep import holder_pose
-        from alignd.vision import linearise, track_holder
+        from alignd.vision import Lens, linearise, track_holder
 
         def pt(p: Any) -> tuple[int, int]:
             return round(float(p[0]) * scale), round(float(p[1]) * scale)
@@ -140,6 +140,11 @@ class LiveView:
         info: dict[str, Any] = {"holder": None, "centre_px": None, "centre_run": None}
         gray = full if full.ndim == 2 else cv2.cvtColor(full, cv2.COLOR_BGR2GRAY)
         cam = self.source.cfg.camera("top")
+        # a run's centre is in the undistorted image (the configured lens); drawn in the frame
+        centre_here = None if centre is None else np.asarray(centre.px, float)
+        if centre_here is not None and cam is not None and cam.lens is not None:
+            centre_here = Lens(cam.lens.focal_px, cam.lens.principal_px,
+                               cam.lens.k1).distort(centre_here[None])[0]
         try:
             det = track_holder(linearise(gray, cam.gamma if cam is not None else 1.0),
                                hint=self._hint)
@@ -160,9 +165,9 @@ class LiveView:
             cv2.circle(small, pt(target), 6, TARGET_COLOUR, 2, cv2.LINE_AA)
             info["target_px"] = [round(float(v), 2) for v in target]
             if centre is not None:
-                cv2.line(small, pt(centre.px), pt(target), TARGET_COLOUR, 1, cv2.LINE_AA)
+                cv2.line(small, pt(centre_here), pt(target), TARGET_COLOUR, 1, cv2.LINE_AA)
         if centre is not None:
-            cv2.drawMarker(small, pt(centre.px), CENTRE_COLOUR, cv2.MARKER_CROSS, 22, 2,
+            cv2.drawMarker(small, pt(centre_here), CENTRE_COLOUR, cv2.MARKER_CROSS, 22, 2,
                            cv2.LINE_AA)
             info["centre_px"] = [round(v, 2) for v in centre.px]
             info["centre_run"] = centre.run_id

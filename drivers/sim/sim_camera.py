@@ -45,6 +45,8 @@ class SimCamera(Camera):
             opts = render.RenderOptions(read_noise_dn=world.cfg.noise_dn, gradient=(0.08, 0.04))
             if world.cfg.holder_dn is not None:
                 opts = dataclasses.replace(opts, holder_dn=world.cfg.holder_dn)
+            if role == "top" and world.cfg.top_lens_k1:
+                opts = dataclasses.replace(opts, k1=world.cfg.top_lens_k1)
         # the camera's tone curve (the camera config's gamma) over the options' own
         self.opts = opts if is_linear(gamma) else dataclasses.replace(opts, gamma=gamma)
         self.rng = np.random.default_rng(seed)
