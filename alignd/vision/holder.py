@@ -58,7 +58,7 @@ from alignd.vision.holder_bands import SideProfiles, read_sides, side_bands
 from alignd.vision.holder_neighbours import REACH as NEIGHBOUR_REACH
 from alignd.vision.holder_neighbours import neighbour_steps, without_neighbours
 from alignd.vision.holder_search import search_candidates, voted_by_voters
-from alignd.vision.holder_square import square_sides
+from alignd.vision.holder_square import parallel_to, square_sides
 from alignd.vision.holder_steps import inner_step, side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import fit_profiles
@@ -97,6 +97,14 @@ _ROUGH_SIDE_RATIO = 3.0
 # for, and 10 of them: a floor hole as dark as the holder can hide over half of a short
 # side (corpus breadboards at 640 x 480: 0.5 refused three right holders, 0.3 no wrong one)
 _MIN_SIDE_SHARE = 0.3
+# a side whose columns, less stray ones (runs of fewer than _RUN_COLUMNS between gaps over
+# _RUN_GAP_PX), span less than this share of that length shows beside one of its ends
+# only: it takes its direction from the opposite side (corpus sweeps: a floor hole hid 33
+# of a 68 px side's 48 columns, the 15 left lay within 13 px but for one stray column by
+# the hole, which set the side's direction, and its far corner was 1.5 px off, 7 of its
+# sigma)
+_MIN_SIDE_SPAN = 0.5
+_RUN_COLUMNS, _RUN_GAP_PX = 5, 3.0
 # candidates refused only for a side's crossings scattering over max_rms_px, by up to this
 # factor, are refined once more with that much allowed, after every candidate has failed:
 # a soft, low-contrast side on a textured floor scatters 0.6-0.8 px and is the holder's
@@ -1021,6 +1029,21 @@ def _polarity(gray: np.ndarray, c: np.ndarray) -> str:
     return "dark" if level[0] < 0.5 * float(out[1] + out[2]) else "light"
 
 
+def _columns_span(ln: Line, pts: EdgePoints) -> tuple[float, bool]:
+    """How far along ``ln`` its columns (those within its rejection reach) run, counting
+    only runs of at least _RUN_COLUMNS between gaps over _RUN_GAP_PX (px); and whether
+    there are shorter, stray runs."""
+    resid = np.abs(pts.xy @ ln.n - ln.d)
+    t = np.sort(pts.xy[resid <= 3.5 * max(ln.rms_px, 0.01)] @ np.array([-ln.n[1], ln.n[0]]))
+    if t.size == 0:
+        return 0.0, False
+    cut = np.flatnonzero(np.diff(t) > _RUN_GAP_PX) + 1
+    runs = np.split(t, cut)
+    kept = [r for r in runs if r.size >= _RUN_COLUMNS]
+    span = float(max(r[-1] for r in kept) - min(r[0] for r in kept)) if kept else 0.0
+    return span, len(kept) < len(runs)
+
+
 def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, pol: str,
               expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
               max_rms_px: float, lens: Lens | None = None, size_tolerance: float = 0.15,
@@ -1031,6 +1054,7 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
     lines = [s[0] for s in sides]
     reasons = []
     edge_ok = []
+    short = np.zeros(4, bool)  # a side's columns beside one of its ends only
     frac = []
     spans = _side_lengths(corners).tolist()
     for i, (ln, _pts) in enumerate(sides):
@@ -1045,14 +1069,31 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
         good = ln.n_used >= 10 and f >= _MIN_SIDE_SHARE and ln.rms_px <= max_rms_px
         if not good:
             reasons.append(f"side {i}: {ln.n_used} columns, rms {ln.rms_px:.2f} px")
+        else:
+            run, stray = _columns_span(ln, _ideal(_pts, lens))
+            short[i] = stray and run < _MIN_SIDE_SPAN * max(spans[i] - 20.0, 1.0)
         edge_ok.append(good)
+    for k in np.flatnonzero(short):
+        i, j = int(k), int(k + 2) % 4
+        ln, other = lines[i], lines[j]
+        if ln is not None and other is not None and edge_ok[j] and not short[j]:
+            # (its crossings' scatter stays its own line's: the checks judge the scatter,
+            # not the direction borrowed)
+            lines[i] = replace(parallel_to(ln, _ideal(sides[i][1], lens), other),
+                               rms_px=ln.rms_px)
+
+        else:
+            edge_ok[i] = False
+            reasons.append(f"side {i}: its edge shows beside one end only, and so does "
+                           "the opposite side's")
     out = np.full((4, 2), np.nan)
     sig = np.full(4, np.nan)
     fit_sig = np.full(4, np.nan)
     # the fit's covariance counts the columns as independent: scaled up by how much its
     # residuals correlate along the side (JPEG blocks, texture, penumbrae)
     infl = [residual_correlation(ln, _ideal(pts, lens)) if ln is not None and good
-            and inflate else 1.0 for (ln, pts), good in zip(sides, edge_ok, strict=True)]
+            and inflate else 1.0
+            for ln, (_ln, pts), good in zip(lines, sides, edge_ok, strict=True)]
     for i in range(4):
         a, b = lines[i - 1], lines[i]
         if edge_ok[i - 1] and edge_ok[i] and a is not None and b is not None:

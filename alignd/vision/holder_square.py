@@ -21,7 +21,7 @@ import math
 
 from alignd.vision.edges import EdgePoints, Line, fit_line
 
-__all__ = ["square_sides"]
+__all__ = ["parallel_to", "square_sides"]
 
 # four directions agree with a rectangle when the chi-square of their deviations from
 # their mean (3 degrees of freedom) is under this (p about 0.7 %); an opposite pair when
@@ -88,3 +88,16 @@ def square_sides(lines: list[Line | None], points: list[EdgePoints]) -> list[Lin
             out[k] = _refit(sides[k], points[k], phi, var)
             out[k + 2] = _refit(sides[k + 2], points[k + 2], phi, var)
     return out
+
+
+def parallel_to(ln: Line, pts: EdgePoints, other: Line) -> Line:
+    """``ln``, or where its direction disagrees with ``other``'s (its opposite side) by
+    more than _PAIR_Z standard errors, ``ln`` fitted again through ``pts`` with
+    ``other``'s direction and its variance: for a side whose crossings show beside one end
+    only, where a few stray crossings by whatever hides the rest can set its direction
+    (their residuals then small, its stated variance too)."""
+    (p0, v0), (p1, v1) = _direction(ln), _direction(other)
+    d = _wrap(p1 - p0, math.pi)
+    if d * d <= _PAIR_Z ** 2 * (v0 + v1):
+        return ln
+    return _refit(ln, pts, p1, v1)
