@@ -13,12 +13,14 @@ tracker's corner order, the holder frame's numbering), without a lens model or, 
 the sweep solved undistorted), and solved by ``alignd.solve.solve_centre`` (the rigid fit,
 angles from the images).
 
-Per category and in total: sweeps solved, frames tracked, corner RMS of the tracked
-frames (px, against exact truth; optics frames include the lens' bend, which the
+Per category and in total: sweeps solved, frames tracked, wrong frames (a corner more than
+1 px off; in the RMS and the solve, as an alignment would use them), corner RMS of the
+tracked frames (px, against exact truth; optics frames include the lens' bend, which the
 tracker does not model), the centre's error (um at the scene's pixel size), the error of
 the target relative to it (the middle of the sample's side, 0-3 mm from the axis: what a
-correction move is made from and the verdict is on), and the share
-of sweeps whose centre lies inside its own 95 % ellipse. Scenes whose clutter the turn
+correction move is made from and the verdict is on), the share of sweeps whose centre
+lies inside its own 95 % ellipse, and the RMS of its error over its stated standard
+uncertainty (1 where the solver's covariance is right). Scenes whose clutter the turn
 changes (a cable or second rectangle clear of the holder in one frame only) are counted
 apart and skipped.
 
@@ -65,11 +67,13 @@ class SweepResult:
     category: str
     frames: int
     tracked: int
-    corner_err_px: list[float]
+    corner_err_px: list[float]  # the tracked frames' corners (the wrong ones too)
     solved: bool
+    wrong: int = 0  # tracked frames with a corner more than 1 px off
     centre_err_um: float = math.nan
     relative_err_um: float = math.nan
     inside_95: bool = False
+    z: float = math.nan  # the centre's error over its stated uncertainty, sqrt(chi2 / 2)
     note: str = ""
 
 
@@ -124,7 +128,8 @@ def run_sweep(seed: int, index: int, size_px: tuple[int, int],
     ok = np.all(np.isfinite(points), axis=(1, 2))
     errs = [float(e) for k in np.flatnonzero(ok) for e in np.linalg.norm(
         points[k] - order_corners(truth[k], points[k]), axis=1)]
-    res = SweepResult(cat, len(frames), int(ok.sum()), errs, False)
+    wrong = sum(max(errs[4 * j:4 * j + 4]) > 1.0 for j in range(len(errs) // 4))
+    res = SweepResult(cat, len(frames), int(ok.sum()), errs, False, wrong=wrong)
     if ok.sum() < 3 or not ok[k0]:
         res.note = f"tracked {int(ok.sum())} of {len(frames)} frames"
         return res
@@ -146,7 +151,8 @@ def run_sweep(seed: int, index: int, size_px: tuple[int, int],
     res.centre_err_um = float(np.hypot(*e)) * base.pixel_size_um
     res.relative_err_um = float(np.hypot(*held)) * base.pixel_size_um
     try:
-        res.inside_95 = float(e @ np.linalg.solve(fit.cov_px2, e)) <= CHI2_2_95
+        chi2 = float(e @ np.linalg.solve(fit.cov_px2, e))
+        res.inside_95, res.z = chi2 <= CHI2_2_95, math.sqrt(chi2 / 2)
     except np.linalg.LinAlgError:
         res.inside_95 = False
     return res
@@ -161,11 +167,14 @@ def _row(name: str, rs: list[SweepResult]) -> tuple[str, ...]:
     ce = [r.centre_err_um for r in solved]
     re_ = [r.relative_err_um for r in solved]
     errs = [e for r in rs for e in r.corner_err_px]
+    wrong = sum(r.wrong for r in rs)
     return (name, str(len(rs)), f"{100 * len(solved) / max(len(rs), 1):.1f}",
             f"{100 * sum(r.tracked for r in rs) / max(sum(r.frames for r in rs), 1):.1f}",
-            f"{_rms(errs):.3f}", f"{_rms(ce):.1f}", f"{max(ce, default=math.nan):.1f}",
+            str(wrong), f"{_rms(errs):.3f}", f"{_rms(ce):.1f}",
+            f"{max(ce, default=math.nan):.1f}",
             f"{_rms(re_):.1f}", f"{max(re_, default=math.nan):.1f}",
-            f"{100 * sum(r.inside_95 for r in solved) / max(len(solved), 1):.0f}")
+            f"{100 * sum(r.inside_95 for r in solved) / max(len(solved), 1):.0f}",
+            f"{_rms([r.z for r in solved if math.isfinite(r.z)]):.1f}")
 
 
 def print_table(head: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
@@ -204,9 +213,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"corpus sweeps: seed {args.seed}, {w} x {h}, {len(angles)} frames over -10..+10 "
           f"deg; {len(results)} sweeps ({skipped} skipped: the turn changed their clutter); "
           f"{t:.0f} s of one core, drawing included")
-    head = ("category", "sweeps", "solved %", "frames tracked %", "corner RMS px",
+    head = ("category", "sweeps", "solved %", "frames tracked %", "wrong", "corner RMS px",
             "centre RMS um", "centre max um", "target-to-centre RMS um", "max um",
-            "inside own 95 % %")
+            "inside own 95 % %", "error / own sigma, RMS")
     rows = [_row(cat, [r for r in results if r.category == cat]) for cat in TOP_CATEGORIES]
     rows.append(_row("total", results))
     print_table(head, rows)
