@@ -159,6 +159,8 @@ class ReferenceOrder:
     # swapped: the config's frame is the image's turned by this many corners (1 or 3), its u
     # pointing right (as it did before the holder turned past its diagonal)
     turn: int = 0
+    # a square holder near its diagonal: no numbering can be told from the noise's
+    ambiguous: bool = False
 
     def image_target_mm(self, target_mm: tuple[float, float]) -> tuple[float, float]:
         """``target_mm`` of the config's frame in the image's (``swapped``: the holder.
@@ -191,7 +193,7 @@ def reference_order(corners: np.ndarray, size_mm: tuple[float, float]) -> Refere
     a, b = sides(c)
     square = abs(su - sv) <= SQUARE_WITHIN * max(su, sv)
     if square or (a >= b) == (su >= sv):
-        return ReferenceOrder(c, False, a, b)
+        return ReferenceOrder(c, False, a, b, ambiguous=square and near)
     # one corner on: u along the other pair of sides, the one of its two senses pointing
     # right (the image's own order just before the holder turned past its diagonal)
     k = max((1, 3), key=lambda k: float(((c[(k + 1) % 4] - c[k]) + (c[(k + 2) % 4]

@@ -24,6 +24,7 @@ from scipy.stats import chi2 as chi2_dist
 from alignd.config import AligndConfig, HolderConfig
 from alignd.errors import ConfigError, SolveError, VisionError
 from alignd.procedures.angles import (
+    NEAR_DIAGONAL_DEG,
     AngleMap,
     check_sweep_angles,
     holder_frame_order,
@@ -833,6 +834,14 @@ def _one_corner_order(data: SweepData, holder: HolderConfig) -> np.ndarray:
     ConfigError where that frame's u and v are the other way round from holder.size_mm
     (before anything is fitted or moved on it)."""
     points, ref = holder_frame_order(data.points, data.readback_deg, holder.size_mm)
+    if ref is not None and ref.ambiguous:
+        raise ConfigError(
+            "holder frame ambiguous: the holder is square (holder.size_mm "
+            f"{list(holder.size_mm)}) and at turntable 0 its diagonal lies within "
+            f"{NEAR_DIAGONAL_DEG:g} deg of level in the top image, where which corner comes "
+            "first is decided by noise alone (the target would turn a quarter round the "
+            "holder from one sweep to the next). Fix: turn the top camera or the holder by "
+            "10 deg or more; no stage was moved on this sweep's data")
     if ref is not None and ref.swapped:
         su, sv = holder.size_mm
         tu, tv = (t + 0.0 for t in ref.image_target_mm(holder.target_mm))  # (no -0)
