@@ -48,6 +48,9 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the vision bench's table printer
+
+from vision import print_table  # noqa: E402
 
 from alignd.errors import SolveError, VisionError  # noqa: E402
 from alignd.procedures.angles import holder_frame_order  # noqa: E402
@@ -175,14 +178,6 @@ def _row(name: str, rs: list[SweepResult]) -> tuple[str, ...]:
             f"{_rms(re_):.1f}", f"{max(re_, default=math.nan):.1f}",
             f"{100 * sum(r.inside_95 for r in solved) / max(len(solved), 1):.0f}",
             f"{_rms([r.z for r in solved if math.isfinite(r.z)]):.1f}")
-
-
-def print_table(head: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
-    widths = [max(len(r[i]) for r in [*rows, head]) for i in range(len(head))]
-    print("  ".join(h.ljust(w) for h, w in zip(head, widths, strict=True)).rstrip())
-    print("  ".join("-" * w for w in widths).rstrip())
-    for r in rows:
-        print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())
 
 
 def main(argv: list[str] | None = None) -> int:
