@@ -142,3 +142,12 @@ def test_a_square_holder_at_its_diagonal_is_refused_before_it_moves() -> None:
     res = run_alignment(rig, cfg, tools=_tools(5))
     assert res.verdict == "aligned", res.reason
     assert world.truth()["offset_norm_um"] <= cfg.procedure.tolerance_um
+
+
+def test_commission_names_a_square_holder_at_its_diagonal() -> None:
+    cfg = _yawed(45.0, (30.0, 30.0), size_mm=(30.0, 30.0), target_mm=(0.0, -20.0))
+    rig, _ = scene_rig(cfg, 2)
+    rec = run_commission(rig, cfg, tools=_tools(2), abort=threading.Event())
+    f = rec.finding("holder.frame")
+    assert f is not None and f.verdict == "fail" and f.name == "ambiguous", rec.reason
+    assert rec.verdict == "failed" and "turn the top camera or the holder" in f.message

@@ -472,6 +472,13 @@ class _Commission:
                           value=roll, sigma=math.degrees(pose.sigma_px / np.hypot(*u))
                           if math.isfinite(pose.sigma_px) else None, unit="deg",
                           name="" if abs(roll) <= 10 else "rolled"))
+        if self.start_order.ambiguous:
+            self._add(Finding(
+                "holder.frame", "fail",
+                f"the holder is square and its diagonal lies level in the image (u at "
+                f"{roll:+.1f} deg): which corner is first is the noise's, and align refuses "
+                "it; turn the top camera or the holder by 10 deg or more",
+                value=roll, unit="deg", name="ambiguous"))
         # a holder clipped all round hides how far beyond full scale its step goes, and
         # with it where its edges are: commissioning is where the exposure gets set
         self._add(Finding("top.exposure", "warn" if pose.warning else "pass",
