@@ -97,12 +97,12 @@ _ROUGH_SIDE_RATIO = 3.0
 # for, and 10 of them: a floor hole as dark as the holder can hide over half of a short
 # side (corpus breadboards at 640 x 480: 0.5 refused three right holders, 0.3 no wrong one)
 _MIN_SIDE_SHARE = 0.3
-# a side whose columns, less stray ones (runs of fewer than _RUN_COLUMNS between gaps over
-# _RUN_GAP_PX), span less than this share of that length shows beside one of its ends
-# only: it takes its direction from the opposite side (corpus sweeps: a floor hole hid 33
-# of a 68 px side's 48 columns, the 15 left lay within 13 px but for one stray column by
-# the hole, which set the side's direction, and its far corner was 1.5 px off, 7 of its
-# sigma)
+# a side with stray columns (runs of fewer than _RUN_COLUMNS between gaps over _RUN_GAP_PX)
+# whose other columns span less than this share of that length shows beside one of its
+# ends only: where its direction disagrees with the opposite side's, it takes that one
+# (holder_square.parallel_to; corpus sweeps: a floor hole hid 33 of a 68 px side's 48
+# columns, the 15 left lay within 13 px but for one stray column by the hole, which set
+# the side's direction, and its far corner was 1.5 px off, 7 of its sigma)
 _MIN_SIDE_SPAN = 0.5
 _RUN_COLUMNS, _RUN_GAP_PX = 5, 3.0
 # candidates refused only for a side's crossings scattering over max_rms_px, by up to this
@@ -1081,11 +1081,10 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
             # not the direction borrowed)
             lines[i] = replace(parallel_to(ln, _ideal(sides[i][1], lens), other),
                                rms_px=ln.rms_px)
-
         else:
             edge_ok[i] = False
-            reasons.append(f"side {i}: its edge shows beside one end only, and so does "
-                           "the opposite side's")
+            reasons.append(f"side {i}: its edge shows beside one end only, and the "
+                           "opposite side gives it no direction")
     out = np.full((4, 2), np.nan)
     sig = np.full(4, np.nan)
     fit_sig = np.full(4, np.nan)
