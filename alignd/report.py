@@ -36,6 +36,7 @@ import numpy as np
 from alignd.store import atomic_write_bytes, jsonable
 from alignd.textfmt import wrap_words
 from alignd.vision.lens import Lens
+from drivers.config import LensConfig
 
 WIDTH = 960
 PLOT_H = 360  # the row holding the zoom (square) and the convergence plot
@@ -250,8 +251,7 @@ def _in_frame(run: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
                 None)
     if not isinstance(lens, dict):
         return lambda p: np.asarray(p, float)
-    model = Lens(float(lens["focal_px"]), (float(lens["principal_px"][0]),
-                                            float(lens["principal_px"][1])), float(lens["k1"]))
+    model = Lens.of(LensConfig.model_validate(lens))
     return lambda p: model.distort(np.asarray(p, float).reshape(-1, 2)).reshape(np.shape(p))
 
 

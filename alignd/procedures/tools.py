@@ -208,8 +208,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     cams = {role: cfg.camera(role) if cfg is not None else None for role in ("top", "side")}
     gammas = {role: cam.gamma if cam is not None else 1.0 for role, cam in cams.items()}
     top_cam = cams["top"]
-    lens = None if top_cam is None or top_cam.lens is None else vision.Lens(
-        top_cam.lens.focal_px, top_cam.lens.principal_px, top_cam.lens.k1)
+    lens = None if top_cam is None or top_cam.lens is None else vision.Lens.of(top_cam.lens)
 
     def top(frame: Frame) -> np.ndarray:
         return vision.linearise(frame.gray, gammas["top"])

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.config import LensConfig
+
 __all__ = ["Lens"]
 
 
@@ -21,6 +23,11 @@ class Lens:
     focal_px: float
     principal_px: tuple[float, float]
     k1: float = 0.0
+
+    @classmethod
+    def of(cls, cfg: LensConfig) -> Lens:
+        """A camera config's ``lens`` (``cameras[].lens``)."""
+        return cls(cfg.focal_px, (cfg.principal_px[0], cfg.principal_px[1]), cfg.k1)
 
     def undistort(self, pts: np.ndarray) -> np.ndarray:
         """Frame pixels (N, 2) -> ideal pinhole pixels."""

@@ -143,8 +143,7 @@ class LiveView:
         # a run's centre is in the undistorted image (the configured lens); drawn in the frame
         centre_here = None if centre is None else np.asarray(centre.px, float)
         if centre_here is not None and cam is not None and cam.lens is not None:
-            centre_here = Lens(cam.lens.focal_px, cam.lens.principal_px,
-                               cam.lens.k1).distort(centre_here[None])[0]
+            centre_here = Lens.of(cam.lens).distort(centre_here[None])[0]
         try:
             det = track_holder(linearise(gray, cam.gamma if cam is not None else 1.0),
                                hint=self._hint)
