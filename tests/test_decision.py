@@ -74,3 +74,16 @@ def test_pool_measures_the_scatter_the_fits_do_not_know() -> None:
     assert 0.012 < tau < 0.035  # the true excess: sqrt(0.025^2 - 0.01^2) = 0.023
     # the pooled uncertainty follows the scatter, not the fits' claim
     assert math.sqrt(p.cov_px2[0, 0]) == pytest.approx(math.sqrt((0.01**2 + tau**2) / 10))
+
+
+def test_the_budget_names_how_far_the_centre_fit_was_widened() -> None:
+    """A sweep whose fit was widened for corner errors that are not independent (its
+    covariance twice the residuals' alone, alignd.solve.rigid) is pooled with it, and the
+    factor (in sigma) is kept for the budget's basis."""
+    pool = CentrePool()
+    for c in ((0.0, 0.0), (0.01, -0.01)):
+        pool.add(SimpleNamespace(center_px=np.array(c), cov_px2=2e-4 * np.eye(2),
+                                 extra={"cov_independent_px2": 1e-4 * np.eye(2)}))
+    assert pool.pooled().widened == pytest.approx(math.sqrt(2.0))
+    plain = _pool(np.zeros((2, 2)), 0.01).pooled()
+    assert plain.widened == pytest.approx(1.0)

@@ -415,6 +415,7 @@ class PooledCentre:
     cov_fit_px2: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
     excess_px2: float = 0.0
     chi2: float = 0.0
+    widened: float = 1.0  # the fits' sigma over what independent corner errors would give
 
 
 class CentrePool:
@@ -474,10 +475,15 @@ class CentrePool:
             tau2 = hi
         mean, cov_p, _ = self._mean(cs, covs, tau2)
         last = self.items[-1][2]
+        indep = [np.asarray(getattr(r, "extra", {}).get("cov_independent_px2", cov), float)
+                 for _, cov, r in self.items]
+        cov_indep = np.linalg.inv(sum(np.linalg.inv(c) for c in indep))
+        widened = math.sqrt(max(float(np.trace(cov0) / max(np.trace(cov_indep), 1e-300)), 1.0))
         return PooledCentre(mean, cov_p, float(getattr(last, "rms_residual_px", np.nan)),
                             int(sum(getattr(r, "inliers", 0) for *_, r in self.items)),
                             int(sum(getattr(r, "outliers", 0) for *_, r in self.items)),
-                            len(self.items), cov_fit_px2=cov0, excess_px2=tau2, chi2=q0)
+                            len(self.items), cov_fit_px2=cov0, excess_px2=tau2, chi2=q0,
+                            widened=widened)
 
 
 def conformance_probability(offset_um: np.ndarray, cov_um2: np.ndarray,
@@ -619,6 +625,7 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
     cov_c = np.asarray(centre.cov_px2, float)
     cov_fit = np.asarray(getattr(centre, "cov_fit_px2", cov_c), float)
     n_sw = int(getattr(centre, "n_sweeps", 1))
+    widened = float(getattr(centre, "widened", 1.0))
     poses = holder_poses(data.points[idx], holder)
     ang = np.asarray(data.readback_deg, float)[idx]
     rback = rot(-ang)  # (n, 2, 2)
@@ -647,7 +654,10 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
         if n_sw > 1 else "")
     budget = Budget((
         Contribution("centre fit", u_of(cov_centre_fit), "A",
-                     f"pooled centre of rotation over {n_sw} sweep(s)"),
+                     f"pooled centre of rotation over {n_sw} sweep(s)" + (
+                         f"; x{widened:.2f} for corner errors that are not independent "
+                         "(corners on shared sides, clutter under one corner's path)"
+                         if widened > 1.005 else "")),
         Contribution("target point", u_of(cov_target), "A",
                      f"scatter of the target over {n} frames"),
         Contribution("pixel scale", u_of(cov_scale), "A",

@@ -17,7 +17,13 @@ gross tracking errors, then hard rejection at the chi-square 99.9 % point with t
 re-estimated from the inliers, refitting until the inlier set is stable. The covariance
 is sigma^2 (J'J)^-1 for the centre, the angles marginalised (Schur complement), with sigma^2
 estimated from the inlier residuals with their degrees of freedom, so it needs no prior
-knowledge of the detection noise.
+knowledge of the detection noise. Two terms keep it honest where the features' errors
+are not independent: sigma is at least the scale of the frames' mean residual
+(``_translation_sigma``: corners found on shared sides err together), and, with the angles
+free, what the features' own centres disagree by beyond their noise (a texture or a
+shadow under one corner's path) is added (``_features_excess``). With independent noise
+the first is sigma itself, give or take its scatter, and the second adds nothing 19 times
+in 20.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from alignd.errors import SolveError
 
@@ -38,6 +45,7 @@ __all__ = ["fit_rigid", "image_angles"]
 _MAX_HUBER = 40
 _MAX_MASK = 8
 _MAX_GN = 12
+EXCESS_LEVEL = 0.95  # the features' centres disagree beyond their noise
 
 
 class _State:
@@ -326,7 +334,13 @@ def fit_rigid(inp: SolveInputs, estimate_angles: bool) -> CentreResult:
     assert H is not None
     if estimate_angles:
         _check_spread(method, st.a, mask)
-    cov = _centre_cov(method, H, sigma)
+    unit = _centre_cov(method, H, 1.0)
+    # with the readback's angles an angle error turns every feature's path its own way, so
+    # their centres disagree by what sigma already holds (the misfit): free angles only
+    excess = (_features_excess(Px, Py, mask, st.a, sigma) if estimate_angles
+              else np.zeros((2, 2)))
+    sigma_t = _translation_sigma(*_residuals(Px, Py, st), mask, st.a)
+    cov = unit * max(sigma, sigma_t) ** 2 + excess
     if estimate_angles:
         act = mask.any(axis=1)
         delta = float(np.mean(readback[act] - st.a[act]))
@@ -344,7 +358,74 @@ def fit_rigid(inp: SolveInputs, estimate_angles: bool) -> CentreResult:
                         rms_residual_px=float(np.sqrt(np.mean(nrm[mask] ** 2) / 2.0)),
                         inliers=n_in, outliers=outliers, inlier_mask=mask,
                         angles_deg=angles, n_frames=F,
-                        extra={"sigma_px": sigma, "template_px": st.q + o})
+                        extra={"sigma_px": sigma, "sigma_translation_px": sigma_t,
+                               "cov_independent_px2": unit * sigma**2,
+                               "features_excess_px2": excess,
+                               "template_px": st.q + o})
+
+
+def _feature_centres(Px: np.ndarray, Py: np.ndarray, mask: np.ndarray, a: np.ndarray
+                     ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each feature's own centre (its path alone, at the fit's angles) and its covariance
+    per unit noise; features seen in fewer than 3 frames are left out."""
+    cs, sn = np.cos(a), np.sin(a)
+    cents: list[np.ndarray] = []
+    covs: list[np.ndarray] = []
+    for k in range(mask.shape[1]):
+        f = np.flatnonzero(mask[:, k])
+        if f.size < 3:
+            continue
+        c, s = cs[f], sn[f]
+        # p = (I - R) c + R q, unknowns (cx, cy, qx, qy)
+        A = np.concatenate([np.stack([1 - c, s, c, -s], 1), np.stack([-s, 1 - c, s, c], 1)])
+        b = np.concatenate([Px[f, k], Py[f, k]])
+        N = A.T @ A
+        try:
+            Ni = np.linalg.inv(N)
+        except np.linalg.LinAlgError:
+            continue
+        cents.append((Ni @ (A.T @ b))[:2])
+        covs.append(Ni[:2, :2])
+    return cents, covs
+
+
+def _features_excess(Px: np.ndarray, Py: np.ndarray, mask: np.ndarray, a: np.ndarray,
+                     sigma: float) -> np.ndarray:
+    """What the features' own centres disagree by beyond the noise: a covariance to add.
+
+    Every feature turns about the one centre, so each one's path alone gives it. A texture,
+    a shadow or clutter under one corner biases that corner's path as the holder turns
+    across them: its centre then leaves the others' by more than their noise allows, and
+    the fitted centre, their weighted mean, carries part of that bias, which no residual
+    shows (a bias that changes smoothly with the angle is absorbed by the fit). When the
+    centres scatter beyond their noise (chi-square above its degrees of freedom), the
+    excess tau^2 per axis is the Paule-Mandel estimate, as between sweeps
+    (``alignd.procedures.sweep.CentrePool``), and the mean's covariance grows by what tau^2
+    adds to it. Significant means beyond the 95 % point: independent noise then adds
+    nothing 19 times in 20 (at the chi-square's mean half the sweeps would gain a little).
+    """
+    cents, units = _feature_centres(Px, Py, mask, a)
+    dof = 2 * (len(cents) - 1)
+    if dof <= 0 or sigma <= 0:
+        return np.zeros((2, 2))
+    covs = [u * sigma**2 for u in units]
+
+    def mean(tau2: float) -> tuple[np.ndarray, float]:
+        Ws = [np.linalg.inv(C + tau2 * np.eye(2)) for C in covs]
+        cov_m = np.linalg.inv(sum(Ws))
+        m = cov_m @ sum(W @ c for W, c in zip(Ws, cents, strict=True))
+        return cov_m, float(sum((c - m) @ W @ (c - m) for W, c in zip(Ws, cents, strict=True)))
+
+    cov0, q0 = mean(0.0)
+    if q0 <= float(chi2_dist.ppf(EXCESS_LEVEL, dof)):
+        return np.zeros((2, 2))
+    lo, hi = 0.0, max(float(np.max([np.sum((c - cents[0]) ** 2) for c in cents])), 1e-12)
+    while mean(hi)[1] > dof:
+        hi *= 4.0
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if mean(mid)[1] > dof else (lo, mid)
+    return mean(hi)[0] - cov0
 
 
 def _check_spread(method: str, a: np.ndarray, mask: np.ndarray) -> None:
@@ -367,3 +448,34 @@ def _centre_cov(method: str, H: np.ndarray, sigma: float) -> np.ndarray:
         raise SolveError(f"{method}: centre not determined by the data (ill-conditioned; "
                          "no angular spread or degenerate geometry)")
     return cc * sigma**2
+
+
+def _translation_sigma(rx: np.ndarray, ry: np.ndarray, mask: np.ndarray,
+                       a: np.ndarray) -> float:
+    """The scale of the frames' mean residual, per feature, from frame to frame.
+
+    The centre is read from how the features translate together from frame to frame
+    (``(I - R) c`` moves them all alike), so its uncertainty follows the noise of the
+    frames' mean residual. With independent errors that is sigma / sqrt(n); corners found
+    as crossings of a holder's sides err together (each side's offset moves its two
+    corners alike), and the mean then scatters more than that (by about 1.3 where each
+    side's offset errs alone; 1.16 over the randomised corpus' sweeps). It is measured from
+    the differences between neighbouring frames (in angle order): a turntable's error
+    motion also moves every feature alike, but smoothly with the angle, so it stays out
+    (it is the runout map's and the floor's to count, and a stale map must still show
+    as sweeps that disagree). n_f times the mean's variance, per axis; 0 with one feature
+    or fewer than 6 frames.
+    """
+    n = mask.sum(axis=1)
+    if np.count_nonzero(mask.any(axis=0)) < 2:
+        return 0.0
+    act = np.flatnonzero(n > 0)
+    act = act[np.argsort(a[act])]
+    if act.size < 6:
+        return 0.0
+    nf = n[act].astype(float)
+    mx = np.sum(np.where(mask, rx, 0.0), axis=1)[act] / nf
+    my = np.sum(np.where(mask, ry, 0.0), axis=1)[act] / nf
+    d2 = np.diff(mx) ** 2 + np.diff(my) ** 2
+    w = 1.0 / nf[1:] + 1.0 / nf[:-1]
+    return float(np.sqrt(np.mean(d2 / w) / 2.0))
