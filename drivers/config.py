@@ -215,6 +215,9 @@ class SimWorldConfig(Strict):
         "length, 800 mm / pixel_size_um = 5000 px at 160 um/px, and principal point, "
         "axis_px): what the lens does; cameras[].lens is what the config tells alignd"))
     noise_dn: float = 2.0
+    jpeg_quality: int | None = Field(None, ge=10, le=100, description=(
+        "both cameras' frames JPEG-coded at this quality (1-100 as libjpeg's), as a UVC "
+        "camera streaming MJPEG sends them (the thesis' webcam); null: raw frames"))
     # ---- what differs between rigs (commissioning finds these; see docs/configure.md) ----
     turntable_direction: Literal[1, -1] = Field(1, description=(
         "+1: a positive commanded angle turns the table the way the design notes' R(a) "

@@ -180,6 +180,30 @@ def test_default_tools_average_the_configured_frames() -> None:
         parse_config(d)
 
 
+def test_default_tools_say_when_the_frames_were_jpeg_coded() -> None:
+    """A camera streaming MJPEG (``sim.world.jpeg_quality``): the pre-check's reading
+    carries the quality found and the coding's bias taken off, which the run's event
+    names; raw frames carry neither."""
+    from alignd.config import parse_config
+    from alignd.procedures.tools import default_tools
+    from drivers.camera import Frame
+    from drivers.sim.sim_camera import mjpeg
+    from tests.test_vision_scenes import _cfg_data
+    sc = random_side_scene(np.random.default_rng(1), "full-height sample", frames=4)
+    d = _cfg_data()
+    d["side_camera"] = {"pole_roi_px": list(sc.pole_roi_px),
+                        "sample_roi_px": list(sc.sample_roi_px)}
+    tools = default_tools(parse_config(d))
+    assert tools.tilt_frames is not None
+    raw = tools.tilt_frames([Frame(image=f, timestamp=float(k), seq=k)
+                             for k, f in enumerate(sc.frames)], None)
+    assert raw.jpeg_quality is None and raw.jpeg_bias_deg is None
+    coded = tools.tilt_frames([Frame(image=mjpeg(f, 75), timestamp=float(k), seq=k)
+                               for k, f in enumerate(sc.frames)], None)
+    assert coded.jpeg_quality == 75 and coded.jpeg_bias_deg is not None
+    assert coded.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.005)
+
+
 def test_a_sample_region_holding_both_faces_averages_them() -> None:
     """Why the regions mode was less accurate than the automatic one on the corpus: its
     sample region holds the near face only, the automatic mode averages both faces. A

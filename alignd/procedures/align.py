@@ -638,6 +638,9 @@ class _Run:
                 self.st.tilt_deg, self.st.tilt_u_deg = reading.tilt_deg, reading.u_deg
                 u = "" if reading.u_deg is None else f" +- {reading.u_deg:.4f}"
                 why = f"; {reading.stop}" if reading.stop else ""
+                if reading.jpeg_quality is not None:
+                    why += (f"; JPEG-coded frames, quality {reading.jpeg_quality}: the "
+                            f"coding's bias {reading.jpeg_bias_deg or 0.0:+.4f} deg taken off")
                 self.recorder.event(f"pre-check: sample tilt {self.st.tilt_deg:+.4f}{u} deg "
                                     f"(mean of {reading.frames} side frame(s), u k = 1{why})")
                 if abs(self.st.tilt_deg) > pc.max_tilt_deg:

@@ -105,6 +105,10 @@ class TiltReading:
     u_deg: float | None  # None when the tool cannot say
     frames: int = 1
     stop: str = ""  # why no more frames were taken (a target uncertainty's frame taking)
+    # JPEG-coded frames (a camera streaming MJPEG): the quality found and the coding's
+    # bias taken off the tilt (deg); None for raw frames
+    jpeg_quality: int | None = None
+    jpeg_bias_deg: float | None = None
 
 
 TrackFn = Callable[[Frame], Corners]
@@ -260,7 +264,8 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
             [f.gray for f in frames], pole_roi_px=pole_roi, sample_roi_px=sample_roi,
             more=grab, u_target_deg=pc.tilt_u_target_deg if pc else None,
             max_frames=pc.tilt_max_frames if pc else None, gamma=gammas["side"])
-        return TiltReading(av.tilt_deg, av.u_deg, av.n, av.stop)
+        return TiltReading(av.tilt_deg, av.u_deg, av.n, av.stop, av.jpeg_quality,
+                           av.jpeg_bias_deg)
 
     def eccentricity(frame: Frame) -> float:
         return float(vision.fit_rim(top(frame)).eccentricity)

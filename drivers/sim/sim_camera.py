@@ -7,6 +7,7 @@ import math
 import threading
 from typing import Literal
 
+import cv2
 import numpy as np
 
 from drivers.camera import Camera, Frame
@@ -21,6 +22,16 @@ BLUR_STEP_PX = 0.25  # sub-exposures are rendered this far apart along the faste
 MAX_SUBFRAMES = 24
 
 
+def mjpeg(img: np.ndarray, quality: int) -> np.ndarray:
+    """``img`` (uint8, grey) as a camera streaming MJPEG delivers it: JPEG-coded at
+    ``quality`` and decoded."""
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE) if ok else None
+    if out is None:
+        raise RuntimeError(f"JPEG coding at quality {quality} failed")
+    return np.asarray(out, np.uint8)
+
+
 class SimCamera(Camera):
     """A camera looking at the simulated world (top or side view).
 
@@ -32,6 +43,7 @@ class SimCamera(Camera):
     middle of the exposure, on ``clock`` (the rig's: a manual clock for the direct rig,
     the machine's monotonic clock otherwise). ``gamma``: the camera's tone curve
     (:attr:`drivers.sim.render.RenderOptions.gamma`), as a camera config's ``gamma`` says.
+    ``sim.world.jpeg_quality`` codes every frame as a camera streaming MJPEG does.
     """
 
     def __init__(self, world: World, role: Literal["top", "side"], *,
@@ -113,6 +125,9 @@ class SimCamera(Camera):
             else:
                 img = render.render_side(self.world.side_scene(), self.opts, self.rng)
                 meta = {}
+        q = self.world.cfg.jpeg_quality
+        if q is not None and img.dtype == np.uint8:
+            img = mjpeg(img, q)
         self._seq += 1
         meta.update(source=self.source, exposure=1.0, gain=1.0, exposure_s=self.exposure_s)
         return Frame(img, t, self._seq, meta)
