@@ -73,6 +73,7 @@ HOLDER_LOOK_FRAMES = 3
 # map (``alignctl commission``) each sweep is corrected and the floor is measured.
 SOFT_LIMIT_MARGIN_DEG = 0.1
 MAX_CENTRE_JUMPS = 2  # a centre that jumps once may be a bump; twice, something is loose
+WIDENED_WARN = 2.0  # a centre fit widened past this for correlated corner errors is named
 # the sweeps disagree with the runout map: a wide sweep's centre against the narrower
 # sweeps' beyond this chi-square quantile in MAP_DISAGREE_SWEEPS consecutive sweeps (or one
 # centre jump with a map)
@@ -115,6 +116,7 @@ class _State:
     map_disagree: int = 0  # consecutive sweeps whose centres disagreed with the runout map
     runout_refresh: dict[str, Any] | None = None  # what a refresh (or its refusal) found
     sweep_warned: bool = False  # a sweep's frames carried the tracker's warning (said once)
+    widened_warned: bool = False  # a sweep's centre fit was widened past WIDENED_WARN (once)
 
 
 def run_alignment(rig: Rig, cfg: AligndConfig, *, progress: ProgressCallback | None = None,
@@ -322,6 +324,13 @@ class _Run:
             self.st.sweep_warned = True
             self._warn(f"{kind} sweep {n}: top camera, {data.warned_frames} of "
                        f"{len(data.frame_hashes)} frame(s): {data.warning}")
+        if m.centre_widened > WIDENED_WARN and not self.st.widened_warned:
+            self.st.widened_warned = True
+            self._warn(f"{kind} sweep {n}: the holder's corners disagree with one rigid turn "
+                       f"far beyond their noise (the centre fit's uncertainty widened "
+                       f"x{m.centre_widened:.1f}): a lens not modelled (cameras[].lens), "
+                       "clutter or a shadow at the holder's corners, or a holder that is "
+                       "not rigid; the run's picture shows the corners' paths")
         if warning:
             self._warn(warning)
             if "moved between sweeps" in warning:

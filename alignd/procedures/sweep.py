@@ -333,6 +333,9 @@ class Measurement:
     excess_um: float = 0.0  # between-sweep scatter beyond the fits' own (1 sigma per axis)
     predicted: bool = False  # the offset after a small move, predicted (no sweep after it)
     moved_um: float = 0.0  # that move's length
+    # the centre fit's sigma over what independent corner errors would give (alignd.solve.
+    # rigid: corners on shared sides, one corner's path biased)
+    centre_widened: float = 1.0
 
     @property
     def norm_um(self) -> float:
@@ -371,6 +374,7 @@ class Measurement:
             "plan": None if self.plan is None else self.plan.to_dict(),
             "runout_corrected": self.runout_corrected, "excess_um": self.excess_um,
             "predicted": self.predicted, "moved_um": self.moved_um,
+            "centre_widened": self.centre_widened,
         }
 
 
@@ -656,8 +660,8 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
         Contribution("centre fit", u_of(cov_centre_fit), "A",
                      f"pooled centre of rotation over {n_sw} sweep(s)" + (
                          f"; x{widened:.2f} for corner errors that are not independent "
-                         "(corners on shared sides, clutter under one corner's path)"
-                         if widened > 1.005 else "")),
+                         "(corners on shared sides, clutter under one corner's path, a lens "
+                         "not modelled)" if widened > 1.005 else "")),
         Contribution("target point", u_of(cov_target), "A",
                      f"scatter of the target over {n} frames"),
         Contribution("pixel scale", u_of(cov_scale), "A",
@@ -680,7 +684,7 @@ def measure_offset(data: SweepData, centre: Any, holder: HolderConfig,
         inliers=int(getattr(centre, "inliers", n * 4)),
         outliers=int(getattr(centre, "outliers", 0)), budget=budget,
         sigma_random_um=math.sqrt(max(float(np.linalg.eigvalsh(cov_rand).max()), 0.0)),
-        excess_um=excess_um)
+        excess_um=excess_um, centre_widened=widened)
 
 
 def map_floor_cov(runout: RunoutMap, data: SweepData, centre: Any, holder: HolderConfig,
