@@ -41,7 +41,7 @@ from drivers.config import LensConfig
 WIDTH = 960
 PLOT_H = 360  # the row holding the zoom (square) and the convergence plot
 HEADER_H = 70
-NOTES_H = 120
+NOTES_H = 160
 ZOOM_FIELD_TOLERANCES = 5.0  # the zoom spans this many tolerances (fixed per config)
 PATH_COLOURS = [(60, 60, 255), (60, 200, 60), (255, 140, 40), (0, 200, 255), (200, 80, 200)]
 CENTRE_COLOUR = (0, 255, 255)
@@ -585,13 +585,17 @@ def precheck_note(result: dict[str, Any]) -> str | None:
 
 
 def report_notes(run: dict[str, Any]) -> list[str]:
-    """The text block's lines: the verdict's reason and the pre-checks' readings (the
-    decision rule and the uncertainty budget have their own panel, ``draw_verdict``)."""
+    """The text block's lines: the verdict's reason, the pre-checks' readings and the run's
+    warnings, which often say why a run could not decide (the decision rule and the
+    uncertainty budget have their own panel, ``draw_verdict``)."""
     result = run.get("result") or {}
     reason = run.get("reason") or result.get("reason")
     lines = [f"verdict: {run.get('verdict') or result.get('verdict')}: {reason}"] if reason else []
     pre = precheck_note(result)
-    return [*lines, pre] if pre else lines
+    if pre:
+        lines.append(pre)
+    warnings = (run.get("details") or {}).get("warnings") or []
+    return [*lines, *(f"warning: {w}" for w in warnings if isinstance(w, str))]
 
 
 def _wrap(text: str, width_px: int, size: float) -> list[str]:

@@ -126,3 +126,17 @@ def test_report_notes_give_the_prechecks_readings() -> None:
     assert report.report_notes(run)[1] == "pre-checks: sample tilt +0.3002 deg"
     run["result"].update(tilt_deg=None)
     assert report.report_notes(run) == ["verdict: aligned: ok"]
+
+
+def test_report_notes_give_the_runs_warnings() -> None:
+    """A run that could not decide often says why only in a warning (a lens not modelled,
+    a stale runout map): the picture carries them under the verdict."""
+    run = _run([(1.0, 0.0)])
+    run["details"] = {"warnings": ["align sweep 1: the holder's corners disagree with one "
+                                   "rigid turn far beyond their noise"]}
+    assert report.report_notes(run) == [
+        "verdict: aligned: ok",
+        "warning: align sweep 1: the holder's corners disagree with one rigid turn far "
+        "beyond their noise"]
+    img = report.draw_notes(run)
+    assert (img[40:60] < 100).any()  # the warning's line is drawn
