@@ -27,11 +27,15 @@ import math
 import re
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from alignd.errors import InputError, VisionError
+
+if TYPE_CHECKING:
+    from alignd.vision.lens import Lens
 
 _ANGLE_RE = re.compile(r"(?<![\d.])([-+]?\d+(?:\.\d+)?)\s*deg", re.IGNORECASE)
 
@@ -62,7 +66,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="turntable angle (deg) of each image, in order (else from file names)")
     g.add_argument("--pixel-size-um", type=float, help="pixel size for the sweep file")
     g.add_argument("--k1", type=float, default=0.0,
-                   help="radial distortion (OpenCV k1); needs --focal-px and --principal")
+                   help="radial distortion (OpenCV k1) of top and rim frames; needs "
+                        "--focal-px and --principal")
     g.add_argument("--focal-px", type=float, help="focal length in px (with --k1)")
     g.add_argument("--principal", metavar="X,Y", type=_pair,
                    help="principal point in px (with --k1; default: the image centre)")
@@ -193,19 +198,26 @@ def _fmt(v: float, nd: int = 3) -> str:
     return f"{v:.{nd}f}" if math.isfinite(v) else "nan"
 
 
+def _lens(args: argparse.Namespace, shape: tuple[int, ...]) -> Lens | None:
+    """The top camera's lens from ``--k1`` (and ``--focal-px``, ``--principal``, or the
+    config's ``cameras[].lens``); None without one."""
+    from alignd.vision.lens import Lens
+
+    if not args.k1:
+        return None
+    if args.focal_px is None:
+        raise InputError("--k1 needs --focal-px")
+    pp = args.principal or ((shape[1] - 1) / 2, (shape[0] - 1) / 2)
+    return Lens(args.focal_px, pp, args.k1)
+
+
 def _analyze_one(kind: str, name: str, args: argparse.Namespace,
                  prev: np.ndarray | None) -> tuple[dict[str, object], str, np.ndarray | None]:
     """JSON object, human line, and (top) the corners for the sweep; raises on failure."""
     img = _linear(read_image(name), args)
+    lens = _lens(args, img.shape)
     if kind == "top":
         from alignd.vision.holder import measure_yaw, order_corners, track_holder
-        from alignd.vision.lens import Lens
-        lens = None
-        if args.k1:
-            if args.focal_px is None:
-                raise InputError("--k1 needs --focal-px")
-            pp = args.principal or ((img.shape[1] - 1) / 2, (img.shape[0] - 1) / 2)
-            lens = Lens(args.focal_px, pp, args.k1)
         det = track_holder(img, expected_size_px=args.expected_size, polarity=args.polarity,
                            lens=lens, hint=prev)
         if not det.ok:
@@ -232,7 +244,7 @@ def _analyze_one(kind: str, name: str, args: argparse.Namespace,
                 f"tilt {m.tilt_deg:+.4f} +- {m.sigma_deg:.4f} deg")
         return m.to_json(), line, None
     from alignd.vision.rim import fit_rim
-    f = fit_rim(img, args.radius_mm, args.height_mm)
+    f = fit_rim(img, args.radius_mm, args.height_mm, lens=lens)
     line = (f"ellipse centre ({f.center_px[0]:.3f}, {f.center_px[1]:.3f}) px  axes "
             f"{f.axes_px[0]:.3f} x {f.axes_px[1]:.3f} px  angle {f.angle_deg:+.2f} deg  "
             f"e {f.eccentricity:.4f}  camera zenith {_fmt(f.camera_zenith_deg, 3)} deg")
@@ -254,7 +266,8 @@ def _analyze_mean(kind: str, names: list[str], args: argparse.Namespace
                 f"deg  tilt {t.tilt_deg:+.4f} +- {t.u_deg:.4f} deg")
         return obj, line
     from alignd.vision.rim import fit_rim_frames
-    f = fit_rim_frames([_linear(img, args) for img in images], args.radius_mm, args.height_mm)
+    f = fit_rim_frames([_linear(img, args) for img in images], args.radius_mm, args.height_mm,
+                       lens=_lens(args, images[0].shape))
     line = (f"ellipse centre ({f.center_px[0]:.3f}, {f.center_px[1]:.3f}) px  axes "
             f"{f.axes_px[0]:.3f} x {f.axes_px[1]:.3f} px  e {f.eccentricity:.4f} +- "
             f"{_fmt(f.eccentricity_std, 4)}  camera zenith {_fmt(f.camera_zenith_deg, 3)} deg")

@@ -193,7 +193,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
     have its tone curve undone first (``cameras[].gamma``, :func:`alignd.vision.linearise`).
     With the top camera's ``lens`` the holder's sides are straightened by it and its
     corners are returned undistorted (every sweep, calibration and offset then in the
-    undistorted image).
+    undistorted image), and the rim's ellipse is fitted undistorted (its centre there too).
     """
     from alignd import solve as solver
     from alignd.errors import StateError, VisionError
@@ -268,10 +268,10 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
                            av.jpeg_bias_deg)
 
     def eccentricity(frame: Frame) -> float:
-        return float(vision.fit_rim(top(frame)).eccentricity)
+        return float(vision.fit_rim(top(frame), lens=lens).eccentricity)
 
     def rim(frames: list[Frame], radius_mm: float | None, height_mm: float | None) -> RimInfo:
-        res = vision.fit_rim_frames([top(f) for f in frames], radius_mm, height_mm)
+        res = vision.fit_rim_frames([top(f) for f in frames], radius_mm, height_mm, lens=lens)
         z, u = float(res.camera_zenith_deg), float(res.eccentricity_std)
         return RimInfo((float(res.center_px[0]), float(res.center_px[1])),
                        float(res.eccentricity), z if z == z else None, u if u == u else None)

@@ -45,6 +45,7 @@ from alignd.vision.edges import (
     check_usable,
     despeckle,
 )
+from alignd.vision.lens import Lens
 
 log = logging.getLogger(__name__)
 
@@ -821,42 +822,67 @@ def _consistent(prof: _Profiles, min_contrast: float) -> np.ndarray:
     return ok
 
 
-def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4
-            ) -> tuple[Ellipse, _Profiles, np.ndarray]:
+def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4,
+            lens: Lens | None = None) -> tuple[Ellipse, np.ndarray, _Profiles, np.ndarray]:
     """Alternate edge profiles along the current ellipse and a geometric fit to their
     points; segments whose edge is not the rim's (a holder, a cable, a shadow's soft
-    edge) are left out (:func:`_consistent`, then the fit's own outliers)."""
+    edge) are left out (:func:`_consistent`, then the fit's own outliers).
+
+    With a ``lens`` the rim, a circle seen as an ellipse, is an ellipse only in the
+    undistorted image: the arcs are measured where they are in the frame (along an ellipse
+    fitted to them there, which the arcs' offsets follow to within their band) and the
+    ellipse that counts is fitted to their points undistorted. Returns that ellipse, the
+    points it was fitted to (undistorted with a lens), the profiles and the arcs used."""
     half_band = 9.0
+    p_fit = p if lens is None else _undistorted_ellipse(p, lens)
     for rnd in range(rounds):
         prof = _edge_profiles(gray, p, half_band)
         ok = _consistent(prof, min_contrast)
         if ok.sum() < 12:
             raise VisionError("rim image: too few rim edge segments of one polarity and "
                               "contrast could be measured")
-        p_new, inl = _geometric_fit(p, prof.xy[ok], prof.sigma[ok])
+        xy = prof.xy if lens is None else lens.undistort(prof.xy)
+        new, inl = _geometric_fit(p_fit, xy[ok], prof.sigma[ok])
         use = np.zeros_like(ok)
         use[np.flatnonzero(ok)[inl]] = True
-        moved = np.max(np.abs(_ellipse_frame(p_new, prof.xy[:, 0], prof.xy[:, 1])[0]
-                              - _ellipse_frame(p, prof.xy[:, 0], prof.xy[:, 1])[0]))
-        p = p_new
+        moved = np.max(np.abs(_ellipse_frame(new, xy[:, 0], xy[:, 1])[0]
+                              - _ellipse_frame(p_fit, xy[:, 0], xy[:, 1])[0]))
+        p_fit = new
+        # the next arcs along the rim as the frame shows it
+        p = new if lens is None else _geometric_fit(p, prof.xy[use], prof.sigma[use])[0]
         half_band = float(np.clip(3.0 * float(np.median(prof.width[use])) + 5.0, 8.0, 12.0))
         if rnd >= 1 and moved < 2e-3:
             break
-    return p, prof, use
+    return p_fit, (prof.xy if lens is None else lens.undistort(prof.xy)), prof, use
 
 
-def _quality(p: Ellipse, prof: _Profiles, use: np.ndarray) -> tuple[float, float]:
-    """The rms distance (px) of the arcs' points kept from the ellipse, and the fraction
-    of the arcs kept."""
-    xy = prof.xy[use]
-    r = _ellipse_frame(p, xy[:, 0], xy[:, 1])[0]
+def _undistorted_ellipse(p: Ellipse, lens: Lens) -> Ellipse:
+    """The ellipse through ``p``'s points undistorted (a start for the fit there)."""
+    t = np.linspace(0.0, 2 * math.pi, 180, endpoint=False)
+    cx, cy, a, b, th = (float(v) for v in p)
+    c, s = math.cos(th), math.sin(th)
+    pts = np.column_stack([cx + a * np.cos(t) * c - b * np.sin(t) * s,
+                           cy + a * np.cos(t) * s + b * np.sin(t) * c])
+    return _params_from_conic(fit_ellipse(lens.undistort(pts)))
+
+
+def _quality(p: Ellipse, xy: np.ndarray, use: np.ndarray) -> tuple[float, float]:
+    """The rms distance (px) of the arcs' points kept (``xy[use]``) from the ellipse, and
+    the fraction of the arcs kept."""
+    kept = xy[use]
+    r = _ellipse_frame(p, kept[:, 0], kept[:, 1])[0]
     return (float(np.sqrt(np.mean(r ** 2))) if r.size else math.inf), float(use.mean())
 
 
 def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float | None = 800.0,
             *, min_contrast: float = 15.0, max_rms_px: float = 0.25,
-            min_coverage: float = 0.6, max_eccentricity_std: float | None = None) -> RimFit:
+            min_coverage: float = 0.6, max_eccentricity_std: float | None = None,
+            lens: Lens | None = None) -> RimFit:
     """Fit the turntable rim's outer edge; eccentricity and (with R, h) camera zenith.
+
+    ``lens``: the camera's (``cameras[].lens``); the ellipse, its centre and e are then
+    those of the undistorted image (a round rim 100 px off the principal point of a
+    webcam's lens, k1 -0.08 at 1000 px, reads e = 0.057 in the frame itself).
 
     The whole rim (or most of it) must be in view: at the reference rig's 160 um/px a
     150 mm rim is larger than the frame, so calibrate with a wider view or a smaller
@@ -870,8 +896,8 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
     first: VisionError | None = None
     for k in _coarse_ellipses(gray, min_contrast):
         try:
-            p, prof, use = _refine(gray, _params_from_conic(k), min_contrast)
-            rms, cover = _quality(p, prof, use)
+            p, pts, prof, use = _refine(gray, _params_from_conic(k), min_contrast, lens=lens)
+            rms, cover = _quality(p, pts, use)
             if cover < min_coverage or rms > max_rms_px:
                 # a cable loop or a half-hidden rim fits some ellipse: flag it, do not guess
                 raise VisionError(
@@ -887,8 +913,7 @@ def fit_rim(image: np.ndarray, radius_mm: float | None = 150.0, height_mm: float
         break
     else:
         raise first or VisionError("rim image: no elliptical rim found")
-    xy = prof.xy[use]
-    cov = _ellipse_covariance(p, xy, prof.sigma[use])[2:4, 2:4]
+    cov = _ellipse_covariance(p, pts[use], prof.sigma[use])[2:4, 2:4]
     cx, cy, a, b, t = (float(v) for v in p)
     if b > a:
         a, b, t = b, a, t + math.pi / 2
@@ -971,8 +996,10 @@ class PlaneRectifier:
 
 def fit_rim_frames(images: Sequence[np.ndarray], radius_mm: float | None = 150.0,
                    height_mm: float | None = 800.0, *,
-                   max_eccentricity_std: float | None = None) -> RimFit:
-    """:func:`fit_rim` on the mean of several frames of one static view.
+                   max_eccentricity_std: float | None = None,
+                   lens: Lens | None = None) -> RimFit:
+    """:func:`fit_rim` on the mean of several frames of one static view (``lens`` as
+    there).
 
     At small e one frame's sensor noise is the largest part of e's uncertainty (e = 0.01
     is an axes' difference of 0.01 px on a 200 px rim): the mean of N frames has 1/sqrt(N)
@@ -997,10 +1024,11 @@ def fit_rim_frames(images: Sequence[np.ndarray], radius_mm: float | None = 150.0
         raise VisionError(f"rim frames: frames of different sizes {sorted(shapes)}")
     if len(grays) == 1:
         return fit_rim(grays[0], radius_mm, height_mm,
-                       max_eccentricity_std=max_eccentricity_std)
+                       max_eccentricity_std=max_eccentricity_std, lens=lens)
     mean = np.stack(grays).mean(axis=0, dtype=np.float32)
     try:
-        return fit_rim(mean, radius_mm, height_mm, max_eccentricity_std=max_eccentricity_std)
+        return fit_rim(mean, radius_mm, height_mm, max_eccentricity_std=max_eccentricity_std,
+                       lens=lens)
     except VisionError as exc:
         if len(grays) < 3:
             raise
@@ -1008,7 +1036,7 @@ def fit_rim_frames(images: Sequence[np.ndarray], radius_mm: float | None = 150.0
         # hide the rim; without what covers a pixel in few frames it may show
         try:
             fit = fit_rim(_robust_mean(grays), radius_mm, height_mm,
-                          max_eccentricity_std=max_eccentricity_std)
+                          max_eccentricity_std=max_eccentricity_std, lens=lens)
         except VisionError:
             raise exc from None
         log.info("rim frames: fitted without what covered a pixel in few frames (%s)", exc)
