@@ -37,6 +37,7 @@ from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
 from alignd.procedures.runout import RunoutMap
 from alignd.procedures.tools import Tools
+from alignd.solve.common import paule_mandel, weighted_mean
 from drivers.camera import Camera, Frame
 from drivers.errors import CameraError
 
@@ -453,35 +454,19 @@ class CentrePool:
         self.items.append((c, cov, res))
         return self.pooled(), warning
 
-    @staticmethod
-    def _mean(cs: list[np.ndarray], covs: list[np.ndarray], tau2: float
-              ) -> tuple[np.ndarray, np.ndarray, float]:
-        Ws = [np.linalg.inv(cov + tau2 * np.eye(2)) for cov in covs]
-        cov_p = np.linalg.inv(sum(Ws))
-        mean = cov_p @ sum(W @ c for W, c in zip(Ws, cs, strict=True))
-        q = float(sum((c - mean) @ W @ (c - mean) for W, c in zip(Ws, cs, strict=True)))
-        return mean, cov_p, q
-
     def pooled(self) -> PooledCentre:
         cs = [c for c, _, _ in self.items]
         covs = [cov for _, cov, _ in self.items]
         dof = 2 * (len(cs) - 1)
-        mean0, cov0, q0 = self._mean(cs, covs, 0.0)
-        tau2 = 0.0
-        if dof > 0 and q0 > float(chi2_dist.ppf(0.99, dof)):
-            # Paule-Mandel: q(tau2) = dof, q decreasing in tau2
-            lo, hi = 0.0, max(float(np.max([np.sum((c - mean0) ** 2) for c in cs])), 1e-12)
-            while self._mean(cs, covs, hi)[2] > dof:
-                hi *= 4.0
-            for _ in range(60):
-                mid = (lo + hi) / 2
-                lo, hi = (mid, hi) if self._mean(cs, covs, mid)[2] > dof else (lo, mid)
-            tau2 = hi
-        mean, cov_p, _ = self._mean(cs, covs, tau2)
+        plain = weighted_mean(cs, covs)
+        tau2 = (paule_mandel(cs, covs)
+                if dof > 0 and plain.q > float(chi2_dist.ppf(0.99, dof)) else 0.0)
+        pooled = weighted_mean(cs, covs, tau2) if tau2 > 0.0 else plain
+        mean, cov_p, cov0, q0 = pooled.mean, pooled.cov, plain.cov, plain.q
         last = self.items[-1][2]
         indep = [np.asarray(getattr(r, "extra", {}).get("cov_independent_px2", cov), float)
                  for _, cov, r in self.items]
-        cov_indep = np.linalg.inv(sum(np.linalg.inv(c) for c in indep))
+        cov_indep = weighted_mean(cs, indep).cov
         widened = math.sqrt(max(float(np.trace(cov0) / max(np.trace(cov_indep), 1e-300)), 1.0))
         return PooledCentre(mean, cov_p, float(getattr(last, "rms_residual_px", np.nan)),
                             int(sum(getattr(r, "inliers", 0) for *_, r in self.items)),

@@ -20,8 +20,9 @@ CUT_1D = 3.2905267314919255
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 MIN_SPREAD_DEG = 1e-3
 
-__all__ = ["CUT_1D", "CUT_2D", "HUBER_K", "SolveInputs", "check_sweep", "huber_weights",
-           "robust_sigma_1d", "robust_sigma_2d", "rot"]
+__all__ = ["CUT_1D", "CUT_2D", "HUBER_K", "SolveInputs", "WeightedMean", "check_sweep",
+           "huber_weights", "paule_mandel", "robust_sigma_1d", "robust_sigma_2d", "rot",
+           "weighted_mean"]
 
 
 class SolveInputs:
@@ -95,3 +96,39 @@ def huber_weights(norms: np.ndarray, sigma: float, k: float = HUBER_K) -> np.nda
     with np.errstate(divide="ignore", invalid="ignore"):
         w = np.where(norms <= t, 1.0, t / np.maximum(norms, 1e-300))
     return w
+
+
+class WeightedMean:
+    """The inverse-covariance weighted mean of 2-D points, its covariance and chi-square
+    ``q``, each point's covariance widened by ``tau2`` per axis."""
+
+    __slots__ = ("cov", "mean", "q")
+
+    def __init__(self, mean: np.ndarray, cov: np.ndarray, q: float) -> None:
+        self.mean, self.cov, self.q = mean, cov, q
+
+
+def weighted_mean(cs: list[np.ndarray], covs: list[np.ndarray], tau2: float = 0.0
+                  ) -> WeightedMean:
+    """See :class:`WeightedMean` (the sweeps' centres pooled, a feature's centres)."""
+    Ws = [np.linalg.inv(cov + tau2 * np.eye(2)) for cov in covs]
+    cov_m = np.linalg.inv(sum(Ws))
+    m = cov_m @ sum(W @ c for W, c in zip(Ws, cs, strict=True))
+    q = float(sum((c - m) @ W @ (c - m) for W, c in zip(Ws, cs, strict=True)))
+    return WeightedMean(m, cov_m, q)
+
+
+def paule_mandel(cs: list[np.ndarray], covs: list[np.ndarray]) -> float:
+    """The excess variance tau^2 per axis at which the points' weighted scatter equals its
+    degrees of freedom (Paule-Mandel; q falls as tau^2 grows); 0 where it already does.
+    The caller decides first whether the scatter is significant."""
+    dof = 2 * (len(cs) - 1)
+    if dof <= 0 or weighted_mean(cs, covs).q <= dof:
+        return 0.0
+    lo, hi = 0.0, max(float(np.max([np.sum((c - cs[0]) ** 2) for c in cs])), 1e-12)
+    while weighted_mean(cs, covs, hi).q > dof:
+        hi *= 4.0
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if weighted_mean(cs, covs, mid).q > dof else (lo, mid)
+    return hi

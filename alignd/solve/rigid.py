@@ -35,7 +35,15 @@ from scipy.stats import chi2 as chi2_dist
 
 from alignd.errors import SolveError
 
-from .common import CUT_2D, MIN_SPREAD_DEG, SolveInputs, huber_weights, robust_sigma_2d
+from .common import (
+    CUT_2D,
+    MIN_SPREAD_DEG,
+    SolveInputs,
+    huber_weights,
+    paule_mandel,
+    robust_sigma_2d,
+    weighted_mean,
+)
 from .result import CentreResult
 
 log = logging.getLogger(__name__)
@@ -409,23 +417,10 @@ def _features_excess(Px: np.ndarray, Py: np.ndarray, mask: np.ndarray, a: np.nda
     if dof <= 0 or sigma <= 0:
         return np.zeros((2, 2))
     covs = [u * sigma**2 for u in units]
-
-    def mean(tau2: float) -> tuple[np.ndarray, float]:
-        Ws = [np.linalg.inv(C + tau2 * np.eye(2)) for C in covs]
-        cov_m = np.linalg.inv(sum(Ws))
-        m = cov_m @ sum(W @ c for W, c in zip(Ws, cents, strict=True))
-        return cov_m, float(sum((c - m) @ W @ (c - m) for W, c in zip(Ws, cents, strict=True)))
-
-    cov0, q0 = mean(0.0)
-    if q0 <= float(chi2_dist.ppf(EXCESS_LEVEL, dof)):
+    if weighted_mean(cents, covs).q <= float(chi2_dist.ppf(EXCESS_LEVEL, dof)):
         return np.zeros((2, 2))
-    lo, hi = 0.0, max(float(np.max([np.sum((c - cents[0]) ** 2) for c in cents])), 1e-12)
-    while mean(hi)[1] > dof:
-        hi *= 4.0
-    for _ in range(60):
-        mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if mean(mid)[1] > dof else (lo, mid)
-    return mean(hi)[0] - cov0
+    tau2 = paule_mandel(cents, covs)
+    return weighted_mean(cents, covs, tau2).cov - weighted_mean(cents, covs).cov
 
 
 def _check_spread(method: str, a: np.ndarray, mask: np.ndarray) -> None:
