@@ -17,13 +17,12 @@ gross tracking errors, then hard rejection at the chi-square 99.9 % point with t
 re-estimated from the inliers, refitting until the inlier set is stable. The covariance
 is sigma^2 (J'J)^-1 for the centre, the angles marginalised (Schur complement), with sigma^2
 estimated from the inlier residuals with their degrees of freedom, so it needs no prior
-knowledge of the detection noise. Two terms keep it honest where the features' errors
-are not independent: sigma is at least the scale of the frames' mean residual
-(``_translation_sigma``: corners found on shared sides err together), and, with the angles
-free, what the features' own centres disagree by beyond their noise (a texture or a
-shadow under one corner's path) is added (``_features_excess``). With independent noise
-the first is sigma itself, give or take its scatter, and the second adds nothing 19 times
-in 20.
+knowledge of the detection noise. With the angles free, two terms keep it honest where
+the features' errors are not independent: sigma is at least the scale of the frames' mean
+residual (``_translation_sigma``: corners found on shared sides err together), and what
+the features' own centres disagree by beyond their noise (a texture or a shadow under one
+corner's path) is added (``_features_excess``). With independent noise the first is sigma
+itself, give or take its scatter, and the second adds nothing 19 times in 20.
 """
 
 from __future__ import annotations
@@ -343,11 +342,14 @@ def fit_rigid(inp: SolveInputs, estimate_angles: bool) -> CentreResult:
     if estimate_angles:
         _check_spread(method, st.a, mask)
     unit = _centre_cov(method, H, 1.0)
-    # with the readback's angles an angle error turns every feature's path its own way, so
-    # their centres disagree by what sigma already holds (the misfit): free angles only
-    excess = (_features_excess(Px, Py, mask, st.a, sigma) if estimate_angles
-              else np.zeros((2, 2)))
-    sigma_t = _translation_sigma(*_residuals(Px, Py, st), mask, st.a)
+    # with the readback's angles taken as exact, a frame's angle error turns the features
+    # about the centre (their mean moves with it) and each one's path its own way: sigma
+    # already holds that misfit, and either term would count it again (the covariance came
+    # out 8 times too large on a 2 % scale error). Free angles (the procedures') only.
+    excess, sigma_t = np.zeros((2, 2)), 0.0
+    if estimate_angles:
+        excess = _features_excess(Px, Py, mask, st.a, sigma)
+        sigma_t = _translation_sigma(*_residuals(Px, Py, st), mask, st.a)
     cov = unit * max(sigma, sigma_t) ** 2 + excess
     if estimate_angles:
         act = mask.any(axis=1)
