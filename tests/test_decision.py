@@ -87,3 +87,17 @@ def test_the_budget_names_how_far_the_centre_fit_was_widened() -> None:
     assert pool.pooled().widened == pytest.approx(math.sqrt(2.0))
     plain = _pool(np.zeros((2, 2)), 0.01).pooled()
     assert plain.widened == pytest.approx(1.0)
+
+
+def test_a_fits_corner_bias_is_not_averaged_down_by_more_sweeps() -> None:
+    """The excess a fit adds for one corner's biased path repeats in every sweep over the
+    same place: four such sweeps keep it whole, while their noise pools to a quarter."""
+    pool = CentrePool()
+    bias = 4e-4 * np.eye(2)
+    for c in ((0.0, 0.0), (0.001, 0.0), (0.0, -0.001), (-0.001, 0.001)):
+        pool.add(SimpleNamespace(center_px=np.array(c), cov_px2=1e-4 * np.eye(2) + bias,
+                                 extra={"features_excess_px2": bias,
+                                        "cov_independent_px2": 1e-4 * np.eye(2)}))
+    p = pool.pooled()
+    np.testing.assert_allclose(p.cov_px2, 0.25e-4 * np.eye(2) + bias, rtol=1e-9)
+    assert p.widened == pytest.approx(math.sqrt(4.25e-4 / 0.25e-4))

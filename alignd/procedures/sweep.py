@@ -432,7 +432,9 @@ class CentrePool:
     tau^2 per axis is the Paule-Mandel estimate (the tau^2 at which the weighted scatter
     equals its degrees of freedom) and each sweep is weighted by (C_i + tau^2 I)^-1. That
     is the floor measured from repeated sweeps. (Estimated always, tau^2 would follow the
-    noise of two or three sweeps and inflate U by chance.)
+    noise of two or three sweeps and inflate U by chance.) A fit's excess for a corner's
+    biased path (``features_excess_px2``) is kept apart and added to the pooled
+    covariance at its weighted mean, not averaged down: the same place repeats it.
     """
 
     def __init__(self) -> None:
@@ -456,16 +458,25 @@ class CentrePool:
 
     def pooled(self) -> PooledCentre:
         cs = [c for c, _, _ in self.items]
-        covs = [cov for _, cov, _ in self.items]
+        extras = [getattr(r, "extra", {}) for *_, r in self.items]
+        # a fit's excess for one corner's biased path (alignd.solve.rigid) is bias, not
+        # noise: a sweep over the same place repeats it, so it is not averaged down
+        bias = [np.asarray(x.get("features_excess_px2", np.zeros((2, 2))), float)
+                for x in extras]
+        covs = [cov - b for (_, cov, _), b in zip(self.items, bias, strict=True)]
         dof = 2 * (len(cs) - 1)
         plain = weighted_mean(cs, covs)
         tau2 = (paule_mandel(cs, covs)
                 if dof > 0 and plain.q > float(chi2_dist.ppf(0.99, dof)) else 0.0)
         pooled = weighted_mean(cs, covs, tau2) if tau2 > 0.0 else plain
-        mean, cov_p, cov0, q0 = pooled.mean, pooled.cov, plain.cov, plain.q
+        w = [float(np.trace(pooled.cov @ np.linalg.inv(c + tau2 * np.eye(2)))) / 2
+             for c in covs]
+        cov_bias = sum((wi * b for wi, b in zip(w, bias, strict=True)), np.zeros((2, 2)))
+        mean, q0 = pooled.mean, plain.q
+        cov_p, cov0 = pooled.cov + cov_bias, plain.cov + cov_bias
         last = self.items[-1][2]
-        indep = [np.asarray(getattr(r, "extra", {}).get("cov_independent_px2", cov), float)
-                 for _, cov, r in self.items]
+        indep = [np.asarray(x.get("cov_independent_px2", cov), float)
+                 for x, (_, cov, _) in zip(extras, self.items, strict=True)]
         cov_indep = weighted_mean(cs, indep).cov
         widened = math.sqrt(max(float(np.trace(cov0) / max(np.trace(cov_indep), 1e-300)), 1.0))
         return PooledCentre(mean, cov_p, float(getattr(last, "rms_residual_px", np.nan)),
