@@ -801,10 +801,16 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
         # (it depends on where the holder is), the axis' image point does not
         Pinv = np.linalg.inv(P)
         c_img, cov_img = map_point(Pinv, centre.center_px, centre.cov_px2)
-        pooled, warning = pool.add(dataclasses.replace(centre, center_px=c_img,
-                                                       cov_px2=cov_img)
-                                   if dataclasses.is_dataclass(centre) else
-                                   _Centre(c_img, cov_img, centre))
+        if dataclasses.is_dataclass(centre):
+            # the fit's parts of its covariance go the same way (the pool keeps them apart)
+            extra: dict[str, Any] = dict(centre.extra)
+            for k in ("features_excess_px2", "cov_independent_px2"):
+                if k in extra:
+                    extra[k] = map_point(Pinv, centre.center_px, extra[k])[1]
+            pooled, warning = pool.add(dataclasses.replace(
+                centre, center_px=c_img, cov_px2=cov_img, extra=extra))
+        else:
+            pooled, warning = pool.add(_Centre(c_img, cov_img, centre))
         c_r, cov_r = map_point(P, pooled.center_px, pooled.cov_px2)
         _, cov_fit_r = map_point(P, pooled.center_px, pooled.cov_fit_px2)
         used = dataclasses.replace(pooled, center_px=c_r, cov_px2=cov_r, cov_fit_px2=cov_fit_r)
