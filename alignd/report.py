@@ -41,7 +41,8 @@ from drivers.config import LensConfig
 WIDTH = 960
 PLOT_H = 360  # the row holding the zoom (square) and the convergence plot
 HEADER_H = 70
-NOTES_H = 160
+NOTES_H = 120  # the notes panel's height, grown up to NOTES_MAX_H for more lines
+NOTES_MAX_H = 260
 ZOOM_FIELD_TOLERANCES = 5.0  # the zoom spans this many tolerances (fixed per config)
 PATH_COLOURS = [(60, 60, 255), (60, 200, 60), (255, 140, 40), (0, 200, 255), (200, 80, 200)]
 CENTRE_COLOUR = (0, 255, 255)
@@ -610,18 +611,22 @@ def _wrap(text: str, width_px: int, size: float) -> list[str]:
     return [*out, cur] if cur else out
 
 
-def draw_notes(run: dict[str, Any], width: int = WIDTH, height: int = NOTES_H) -> np.ndarray:
+def draw_notes(run: dict[str, Any], width: int = WIDTH) -> np.ndarray:
+    """The notes (:func:`report_notes`), wrapped; the panel is NOTES_H high and grows for
+    more lines up to NOTES_MAX_H, past which the JSON has the rest."""
+    parts = [part for line in report_notes(run)
+             for part in _wrap(line.replace("±", "+/-"), width - 20, 0.45)]
+    height = min(max(NOTES_H, 20 + 19 * len(parts)), NOTES_MAX_H)
     img = np.full((height, width, 3), 246, np.uint8)
     cv2.line(img, (0, 0), (width, 0), (200, 200, 200), 1)
     y = 20
-    for line in report_notes(run):
-        for part in _wrap(line.replace("±", "+/-"), width - 20, 0.45):
-            if y > height - 6:
-                cv2.putText(img, "... (see the JSON)", (width - 160, height - 6), FONT, 0.42,
-                            (80, 80, 80), 1, cv2.LINE_AA)
-                return img
-            cv2.putText(img, part, (10, y), FONT, 0.45, (30, 30, 30), 1, cv2.LINE_AA)
-            y += 19
+    for part in parts:
+        if y > height - 6:
+            cv2.putText(img, "... (see the JSON)", (width - 160, height - 6), FONT, 0.42,
+                        (80, 80, 80), 1, cv2.LINE_AA)
+            return img
+        cv2.putText(img, part, (10, y), FONT, 0.45, (30, 30, 30), 1, cv2.LINE_AA)
+        y += 19
     return img
 
 

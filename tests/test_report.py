@@ -139,4 +139,10 @@ def test_report_notes_give_the_runs_warnings() -> None:
         "warning: align sweep 1: the holder's corners disagree with one rigid turn far "
         "beyond their noise"]
     img = report.draw_notes(run)
+    assert img.shape[0] == report.NOTES_H
     assert (img[40:60] < 100).any()  # the warning's line is drawn
+    # many warnings grow the panel, up to its most; the JSON has the rest
+    run["details"]["warnings"] = [f"warning number {k} " + "word " * 30 for k in range(12)]
+    tall = report.draw_notes(run)
+    assert tall.shape[0] == report.NOTES_MAX_H
+    assert (tall[-30:] < 100).any()
