@@ -187,7 +187,7 @@ def test_default_tools_say_when_the_frames_were_jpeg_coded() -> None:
     from alignd.config import parse_config
     from alignd.procedures.tools import default_tools
     from drivers.camera import Frame
-    from drivers.sim.sim_camera import mjpeg
+    from drivers.sim.render import mjpeg
     from tests.test_vision_scenes import _cfg_data
     sc = random_side_scene(np.random.default_rng(1), "full-height sample", frames=4)
     d = _cfg_data()

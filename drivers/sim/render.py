@@ -378,6 +378,16 @@ def finish(img: np.ndarray, opts: RenderOptions, rng: np.random.Generator | None
     return _finish(img, opts, rng)
 
 
+def mjpeg(img: np.ndarray, quality: int) -> np.ndarray:
+    """``img`` (uint8, grey) as a camera streaming MJPEG delivers it: JPEG-coded at
+    ``quality`` and decoded (the corpus' JPEG scenes and the simulated cameras)."""
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE) if ok else None
+    if out is None:
+        raise RuntimeError(f"JPEG coding at quality {quality} failed")
+    return np.asarray(out, np.uint8)
+
+
 def tone_curve(img: np.ndarray, gamma: ToneCurve, full: float = 255.0) -> np.ndarray:
     """A camera's tone curve on light ``img`` (float, DN of ``full`` scale): full (light /
     full)^(1 / gamma), or a named curve's values (:mod:`drivers.tone_curves`), float32

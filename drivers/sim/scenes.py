@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from drivers.config import ToneCurve
-from drivers.sim.render import Conic, Polygon, Raster, coverage, tone_curve
+from drivers.sim.render import Conic, Polygon, Raster, coverage, mjpeg, tone_curve
 from drivers.tone_curves import is_linear
 
 __all__ = [
@@ -292,10 +292,7 @@ def _finish(img: np.ndarray, rng: np.random.Generator, *, blur: float, read_nois
         return out16 << 4 if enc.msb_aligned else out16
     out = np.clip(img, 0, 255).astype(np.uint8)
     if enc.jpeg_quality is not None:
-        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(enc.jpeg_quality)])
-        if not ok:
-            raise RuntimeError("JPEG encoding failed")
-        out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+        out = mjpeg(out, enc.jpeg_quality)
     return out
 
 

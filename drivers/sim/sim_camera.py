@@ -7,7 +7,6 @@ import math
 import threading
 from typing import Literal
 
-import cv2
 import numpy as np
 
 from drivers.camera import Camera, Frame
@@ -20,16 +19,6 @@ from drivers.tone_curves import is_linear
 
 BLUR_STEP_PX = 0.25  # sub-exposures are rendered this far apart along the fastest corner
 MAX_SUBFRAMES = 24
-
-
-def mjpeg(img: np.ndarray, quality: int) -> np.ndarray:
-    """``img`` (uint8, grey) as a camera streaming MJPEG delivers it: JPEG-coded at
-    ``quality`` and decoded."""
-    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE) if ok else None
-    if out is None:
-        raise RuntimeError(f"JPEG coding at quality {quality} failed")
-    return np.asarray(out, np.uint8)
 
 
 class SimCamera(Camera):
@@ -127,7 +116,7 @@ class SimCamera(Camera):
                 meta = {}
         q = self.world.cfg.jpeg_quality
         if q is not None and img.dtype == np.uint8:
-            img = mjpeg(img, q)
+            img = render.mjpeg(img, q)
         self._seq += 1
         meta.update(source=self.source, exposure=1.0, gain=1.0, exposure_s=self.exposure_s)
         return Frame(img, t, self._seq, meta)
