@@ -419,10 +419,10 @@ def _features_excess(Px: np.ndarray, Py: np.ndarray, mask: np.ndarray, a: np.nda
     if dof <= 0 or sigma <= 0:
         return np.zeros((2, 2))
     covs = [u * sigma**2 for u in units]
-    if weighted_mean(cents, covs).q <= float(chi2_dist.ppf(EXCESS_LEVEL, dof)):
+    plain = weighted_mean(cents, covs)
+    if plain.q <= float(chi2_dist.ppf(EXCESS_LEVEL, dof)):
         return np.zeros((2, 2))
-    tau2 = paule_mandel(cents, covs)
-    return weighted_mean(cents, covs, tau2).cov - weighted_mean(cents, covs).cov
+    return weighted_mean(cents, covs, paule_mandel(cents, covs)).cov - plain.cov
 
 
 def _check_spread(method: str, a: np.ndarray, mask: np.ndarray) -> None:

@@ -853,7 +853,7 @@ def _refine(gray: np.ndarray, p: Ellipse, min_contrast: float, rounds: int = 4,
         half_band = float(np.clip(3.0 * float(np.median(prof.width[use])) + 5.0, 8.0, 12.0))
         if rnd >= 1 and moved < 2e-3:
             break
-    return p_fit, (prof.xy if lens is None else lens.undistort(prof.xy)), prof, use
+    return p_fit, xy, prof, use
 
 
 def _undistorted_ellipse(p: Ellipse, lens: Lens) -> Ellipse:
