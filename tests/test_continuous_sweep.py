@@ -18,8 +18,9 @@ from test_smc100 import CONNECT, home, make_emu, scripted_axis
 from alignd.config import HolderConfig, continuous_speed, parse_config
 from alignd.errors import ConfigError
 from alignd.procedures import MemoryRecorder, ProgressEvent
+from alignd.procedures.holder_geometry import holder_pose, holder_poses
 from alignd.procedures.rig import AbortRequested
-from alignd.procedures.sweep import Measurement, SweepData, holder_pose, holder_poses, measure
+from alignd.procedures.sweep import Measurement, SweepData, measure
 from alignd.simulated import build_direct_rig
 from drivers.errors import LimitError
 from drivers.sim.sim_camera import SimCamera

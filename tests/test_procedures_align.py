@@ -376,7 +376,8 @@ def test_a_sweep_keeps_one_corner_order_when_the_tracker_restarts_it() -> None:
     """Over +-45 deg a tracker may restart its corner order; the sweep puts every frame back
     in the order of the frame nearest 0 (else the target turns round the holder)."""
     from alignd.config import HolderConfig
-    from alignd.procedures.sweep import SweepData, _one_corner_order, rot
+    from alignd.procedures.holder_geometry import rot
+    from alignd.procedures.sweep import SweepData, _one_corner_order
 
     angles = np.linspace(-45.0, 45.0, 11)
     rect = np.array([[-20.0, -12.5], [20.0, -12.5], [20.0, 12.5], [-20.0, 12.5]]) * 6.5
@@ -386,7 +387,7 @@ def test_a_sweep_keeps_one_corner_order_when_the_tracker_restarts_it() -> None:
         seen[i] = np.roll(true[i], 1 + i % 3, axis=0)
     seen[4] = np.nan  # a missed frame stays missed
     data = SweepData("align", 1, angles.tolist(), angles.tolist(), seen, [])
-    fixed = _one_corner_order(data, HolderConfig(size_mm=(40.0, 25.0)))
+    fixed, _ = _one_corner_order(data, HolderConfig(size_mm=(40.0, 25.0)))
     ok = np.all(np.isfinite(seen), axis=(1, 2))
     np.testing.assert_allclose(fixed[ok], true[ok])
     assert np.all(np.isnan(fixed[4]))

@@ -12,7 +12,7 @@ from procedures_support import scene_rig, sim_config, standin_tools
 from alignd.procedures import CalibrationError, MemoryRecorder
 from alignd.procedures.calibrate import calibrate, check_calibration
 from alignd.procedures.events import no_progress
-from alignd.procedures.sweep import holder_pose
+from alignd.procedures.holder_geometry import holder_pose
 from drivers.errors import DeviceFault, LimitError
 
 

@@ -18,10 +18,11 @@ import pytest
 from procedures_support import commanded, scene_rig, sim_config
 
 from alignd.config import AligndConfig, HolderConfig
+from alignd.errors import ConfigError
 from alignd.procedures import run_alignment
 from alignd.procedures.angles import reference_order
 from alignd.procedures.commission import run_commission
-from alignd.procedures.sweep import holder_pose
+from alignd.procedures.holder_geometry import holder_pose
 from alignd.procedures.tools import Tools
 from alignd.simulated import standin_tools
 from alignd.vision.holder import order_corners
@@ -151,3 +152,110 @@ def test_commission_names_a_square_holder_at_its_diagonal() -> None:
     f = rec.finding("holder.frame")
     assert f is not None and f.verdict == "fail" and f.name == "ambiguous", rec.reason
     assert rec.verdict == "failed" and "turn the top camera or the holder" in f.message
+
+
+def _turned(rotation_deg: int, world_holder_mm: tuple[float, float] | None = None,
+            **holder: Any) -> AligndConfig:
+    """The reference rig with its top camera turned about its optical axis."""
+    cfg = _yawed(1.2, world_holder_mm, **holder)
+    world = cfg.sim.world.model_copy(  # type: ignore[union-attr]
+        update={"camera_rotation_deg": rotation_deg})
+    return cfg.model_copy(update={"sim": cfg.sim.model_copy(  # type: ignore[union-attr]
+        update={"world": world})})
+
+
+def _refused_before_moving(cfg: AligndConfig, seed: int) -> str:
+    rig, world = scene_rig(cfg, seed)
+    start = world.truth()["offset_norm_um"]
+    res = run_alignment(rig, cfg, tools=_tools(seed))
+    assert res.verdict == "fault" and res.exit_code == 2, res.reason
+    assert "no stage was moved" in res.reason
+    assert world.truth()["offset_norm_um"] == pytest.approx(start, abs=5.0)
+    return res.reason
+
+
+def _aligns(cfg: AligndConfig, seed: int) -> None:
+    rig, world = scene_rig(cfg, seed)
+    res = run_alignment(rig, cfg, tools=_tools(seed))
+    assert res.verdict == "aligned", res.reason
+    assert world.truth()["offset_norm_um"] <= cfg.procedure.tolerance_um
+
+
+def test_a_camera_turned_180_deg_is_refused_with_the_target_on_the_sample_side() -> None:
+    """The config written for an upright camera puts the target on the holder's far side
+    when the camera is turned 180 deg. A run chased that point 35 mm off the axis, 5 mm a
+    move, and ended "not converged"; the first sweep now finds the point opposite it near
+    the axis and refuses, naming it."""
+    reason = _refused_before_moving(_turned(180), 6)
+    assert "target on the other side" in reason
+    assert "set holder.target_mm: [0, 17.5]" in reason and "180 deg" in reason
+    _aligns(_turned(180, target_mm=(0.0, 17.5)), 6)
+
+
+@pytest.mark.parametrize(("rotation", "target"), [(90, (-17.5, 0.0)), (270, (17.5, 0.0))])
+def test_a_swapped_frame_names_the_target_the_axis_is_near(
+        rotation: int, target: tuple[float, float]) -> None:
+    """A camera turned 90 or 270 deg: the same lengths, the same image, the targets of the
+    two turns opposite each other. The sample was put near the axis, so the sweep names its
+    side (the fix used to assume u had pointed right, wrong for 270 deg)."""
+    reason = _refused_before_moving(_turned(rotation), 7)
+    assert "holder frame swapped" in reason
+    assert f"holder.target_mm: [{target[0]:g}, {target[1]:g}] (the point the sample is at" \
+        in reason
+    _aligns(_turned(rotation, size_mm=(25.0, 40.0), target_mm=target), 7)
+
+
+def test_a_square_holder_turned_a_quarter_is_refused_with_the_turned_target() -> None:
+    cfg = _turned(90, (30.0, 30.0), size_mm=(30.0, 30.0), target_mm=(0.0, -20.0))
+    reason = _refused_before_moving(cfg, 8)
+    assert "target on the other side" in reason and "a quarter turn" in reason
+    assert "set holder.target_mm: [-20, 0]" in reason, reason
+
+
+def test_a_sample_far_off_the_axis_with_no_turned_target_near_it_is_not_refused() -> None:
+    """Only a turned target near the axis names the config wrong: a sample put 6 mm off
+    the axis by hand is moved there as before."""
+    from alignd.procedures.holder_geometry import rot
+    from alignd.procedures.target_side import MIN_TARGET_MM, check_target_side
+
+    holder = HolderConfig(size_mm=(40.0, 25.0), target_mm=(0.0, -17.5))
+    base = _holder(1.2) - np.array([640.0, 360.0])
+    angles = np.linspace(-10.0, 10.0, 11)
+
+    def sweep(axis_from_target_mm: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+        target = holder_pose(base, holder).target_px
+        axis = target + 6.5 * np.asarray(axis_from_target_mm)
+        return np.array([(base - axis) @ rot(a).T + axis for a in angles]), axis
+
+    for off in [(6.0, 0.0), (0.0, 12.0), (0.0, 24.0)]:  # the opposite point 11 mm off
+        check_target_side(*_with_angles(sweep(off), angles), holder)
+    with pytest.raises(ConfigError, match=r"target on the other side.*\[0, 17.5\]"):
+        check_target_side(*_with_angles(sweep((0.5, 35.0)), angles), holder)
+    near = holder.model_copy(update={"target_mm": (0.0, -0.9 * MIN_TARGET_MM)})
+    pts, axis = sweep((0.0, 1.8 * MIN_TARGET_MM))
+    check_target_side(pts, angles, axis, near)
+
+
+def _with_angles(sweep: tuple[np.ndarray, np.ndarray], angles: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return sweep[0], angles, sweep[1]
+
+
+@pytest.mark.parametrize(("rotation", "target"), [(270, [17.5, 0.0]), (180, [0.0, 17.5])])
+def test_commission_takes_the_targets_side_from_the_translator(
+        rotation: int, target: list[float]) -> None:
+    """The translator moves towards the target (docs/configure.md): a swapped frame's fix
+    takes that side, and a translator moving away from the target names both causes."""
+    cfg = _turned(rotation)
+    rig, _ = scene_rig(cfg, 2)
+    rec = run_commission(rig, cfg, tools=_tools(2), abort=threading.Event())
+    if rotation == 270:
+        f = rec.finding("holder.size")
+        assert f is not None and f.name == "u and v swapped", rec.reason
+        assert f.config_fix == {"holder.size_mm": [25.0, 40.0], "holder.target_mm": target}
+        assert "the side the translator moves towards" in f.message
+    else:
+        f = rec.finding("axis.translator.direction")
+        assert f is not None and f.name == "away from the target", rec.reason
+        assert f.config_fix == {"holder.target_mm": target}
+        assert "the translator's direction is reversed" in f.message

@@ -22,9 +22,10 @@ import numpy as np
 from alignd.config import AligndConfig
 from alignd.errors import AligndError, VisionError
 from alignd.procedures.events import ProgressCallback, ProgressEvent
+from alignd.procedures.holder_geometry import rot
 from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
-from alignd.procedures.sweep import grab_fresh, rot
+from alignd.procedures.sweep import grab_fresh
 from alignd.procedures.tools import Tools
 
 log = logging.getLogger(__name__)

@@ -55,6 +55,7 @@ from alignd.procedures.angles import (
 )
 from alignd.procedures.calibrate import configured_pixel_size_um
 from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_progress
+from alignd.procedures.holder_geometry import rot
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
 from alignd.procedures.runout import RunoutMap, fit_runout
@@ -64,7 +65,6 @@ from alignd.procedures.sweep import (
     grab_fresh,
     grab_rim_frames,
     rectifier,
-    rot,
 )
 from alignd.procedures.tools import Tools, default_tools
 from drivers.camera import Camera, Frame
@@ -302,6 +302,7 @@ class _Commission:
         self.rim_centre: np.ndarray | None = None
         self.start_pose: _Pose | None = None
         self.start_order: ReferenceOrder | None = None  # its corners' holder-frame order
+        self.frame_target = cfg.holder.target_mm  # holder.target_mm in the image's frame
         self.holder_px: tuple[float, float] = (math.nan, math.nan)
         self.axis_px: np.ndarray = np.full(2, np.nan)
 
@@ -656,11 +657,22 @@ class _Commission:
                 value=worst, unit="deg", expected=f"<= {MAX_TURN_DISAGREE_DEG}",
                 name="" if ok else "stages not on the table"))
 
+    def _frame_target(self, translator: tuple[float, float] | None) -> tuple[float, float]:
+        """holder.target_mm in the image's holder frame. Where u and v are the other way
+        round from holder.size_mm, a symmetric rectangle names two targets, opposite each
+        other: the one the translator moves towards (the convention, docs/configure.md),
+        else the one of a config whose u pointed right in the image."""
+        order = self.start_order
+        if order is None or not order.swapped:
+            return self.cfg.holder.target_mm
+        tu, tv = order.image_target_mm(self.cfg.holder.target_mm)
+        if translator is not None and not math.isnan(translator[0]) \
+                and translator[0] * tu + translator[1] * tv < 0:
+            return -tu + 0.0, -tv + 0.0
+        return tu + 0.0, tv + 0.0
+
     def _roles_findings(self, roles: Sequence[str]) -> None:
         """Which config role moves which way in the holder frame; swapped / inverted."""
-        tu, tv = self.cfg.holder.target_mm
-        tn = math.hypot(tu, tv) or 1.0
-        expected = {"x": (1.0, 0.0), "y": (0.0, 1.0), "translator": (tu / tn, tv / tn)}
         names = {(1.0, 0.0): "+u", (-1.0, 0.0): "-u", (0.0, 1.0): "+v", (0.0, -1.0): "-v"}
         along: dict[str, tuple[float, float]] = {}
         for role in roles:
@@ -669,6 +681,9 @@ class _Commission:
             best = max(names, key=lambda k: k[0] * du + k[1] * dv)
             cone = math.degrees(math.acos(max(-1.0, min(1.0, best[0] * du + best[1] * dv))))
             along[role] = best if cone <= ROLE_CONE_DEG else (math.nan, math.nan)
+        tu, tv = self.frame_target = self._frame_target(along.get("translator"))
+        tn = math.hypot(tu, tv) or 1.0
+        expected = {"x": (1.0, 0.0), "y": (0.0, 1.0), "translator": (tu / tn, tv / tn)}
         for role in roles:
             m = self.rec.axes[role]
             exp = expected[role]
@@ -681,7 +696,8 @@ class _Commission:
                     f"{m.backlash_sigma_mm * 1000:.1f} um, repeatability "
                     f"{m.repeatability_mm * 1000:.2f} um")
             verdict: FindingVerdict = "pass"
-            name, fix = "", None
+            name = ""
+            fix: dict[str, object] | None = None
             if role in ("x", "y") and not math.isnan(got[0]):
                 other = "y" if role == "x" else "x"
                 if abs(got[0]) != abs(exp[0]):  # along the other holder axis
@@ -705,6 +721,15 @@ class _Commission:
             elif math.isnan(got[0]):
                 verdict, name = "warn", "oblique"
                 desc += f": not within {ROLE_CONE_DEG:g} deg of a holder axis"
+            elif role == "translator" and got == (-round(exp[0]), -round(exp[1])):
+                verdict, name = "warn", "away from the target"
+                fix = {"holder.target_mm": [-tu + 0.0, -tv + 0.0]}
+                desc += (f": it moves away from holder.target_mm [{tu:g}, {tv:g}] (expected "
+                         f"{exp_name}). Either the sample is on the holder's other side (the "
+                         "top camera turned 180 deg from the one the config was written for, "
+                         f"or the holder mounted the other way round: set holder.target_mm: "
+                         f"[{-tu + 0.0:g}, {-tv + 0.0:g}]), or the translator's direction is "
+                         "reversed: check the target on the picture")
             elif role == "translator" and got != (round(exp[0]), round(exp[1])):
                 verdict, name = "warn", "not along the sample normal"
                 desc += (f": expected along the sample normal {exp_name} (towards "
@@ -791,15 +816,14 @@ class _Commission:
         fix: dict[str, object] | None = None
         if swapped:
             verdict, name = "fail", "u and v swapped"
-            order = self.start_order
-            assert order is not None  # _top_camera_static found the holder
-            tu, tv = (t + 0.0 for t in order.image_target_mm(self.cfg.holder.target_mm))
+            tu, tv = self.frame_target
             fix = {"holder.size_mm": [sv, su], "holder.target_mm": [tu, tv]}
+            by = ("the side the translator moves towards" if "translator" in self.rec.axes
+                  else "if your u pointed right in the image")
             msg += (": u and v are swapped (the camera is turned past the holder's diagonal "
                     "against the holder frame of the config): set holder.size_mm: "
                     f"[{sv:g}, {su:g}] and holder.target_mm: [{tu:g}, {tv:g}] (the same point "
-                    "in the image's frame, if your u pointed right in the image), see "
-                    "docs/configure.md")
+                    f"in the image's frame, {by}), see docs/configure.md")
         elif verdict != "pass":
             name = "holder size wrong"
             msg += f": set holder.size_mm: [{mm_u:.2f}, {mm_v:.2f}] (measure it again)"

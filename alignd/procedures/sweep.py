@@ -26,6 +26,7 @@ from alignd.errors import ConfigError, SolveError, VisionError
 from alignd.procedures.angles import (
     NEAR_DIAGONAL_DEG,
     AngleMap,
+    ReferenceOrder,
     check_sweep_angles,
     holder_frame_order,
     nearest_order,
@@ -33,9 +34,11 @@ from alignd.procedures.angles import (
 from alignd.procedures.budget import Budget, Contribution, u_of
 from alignd.procedures.continuous import frame_angles, run_continuous_sweep
 from alignd.procedures.events import ProgressCallback, ProgressEvent
+from alignd.procedures.holder_geometry import holder_pose, holder_poses, rot
 from alignd.procedures.recorder import RunRecorder
 from alignd.procedures.rig import Rig, check_abort
 from alignd.procedures.runout import RunoutMap
+from alignd.procedures.target_side import check_target_side, image_frame, swapped_frame_error
 from alignd.procedures.tools import Tools
 from alignd.solve.common import paule_mandel, weighted_mean
 from drivers.camera import Camera, Frame
@@ -103,77 +106,6 @@ def grab_rim_frames(rig: Rig, cam: Camera, n: int, turn_deg: float = 0.0,
     check_abort(abort)
     tt.move_to(start)
     return frames
-
-
-def rot(deg: float | np.ndarray) -> np.ndarray:
-    """R(a) of the design notes; stacked (N, 2, 2) for an array of angles."""
-    a = np.radians(deg)
-    c, s = np.cos(a), np.sin(a)
-    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-
-
-@dataclass(frozen=True)
-class HolderPose:
-    """The holder in one image, from its four corners."""
-
-    center_px: np.ndarray
-    u_hat: np.ndarray  # along corner 0 -> 1 (the holder's u axis)
-    v_hat: np.ndarray  # perpendicular, towards corner 3
-    scale_px_per_mm: float
-    angle_deg: float  # direction of u in the image
-    target_px: np.ndarray
-
-
-def holder_pose(corners: np.ndarray, holder: HolderConfig) -> HolderPose:
-    """Holder frame and target point from four corners in the tracker's order.
-
-    The holder frame (config) has its origin at the corners' centre, u along corner 0 -> 1
-    and v towards corner 3. The scale comes from the holder's own size, so the target lands
-    right even though the holder's top face is nearer the camera than the turntable plane.
-    """
-    c = np.asarray(corners, float)
-    u_vec = ((c[1] - c[0]) + (c[2] - c[3])) / 2
-    v_vec = ((c[3] - c[0]) + (c[2] - c[1])) / 2
-    su, sv = holder.size_mm
-    nu, nv = float(np.hypot(*u_vec)), float(np.hypot(*v_vec))
-    if nu == 0 or nv == 0:
-        raise VisionError("degenerate holder corners (zero-length edge)")
-    u_hat = u_vec / nu
-    v_perp = v_vec - u_hat * float(u_hat @ v_vec)
-    v_hat = v_perp / float(np.hypot(*v_perp))
-    scale = (nu / su + nv / sv) / 2
-    center = c.mean(axis=0)
-    tu, tv = holder.target_mm
-    target = center + scale * (tu * u_hat + tv * v_hat)
-    return HolderPose(center, u_hat, v_hat, scale, math.degrees(math.atan2(u_hat[1], u_hat[0])),
-                      target)
-
-
-@dataclass(frozen=True)
-class HolderPoses:
-    """``holder_pose`` of many frames at once (a continuous sweep has hundreds)."""
-
-    target_px: np.ndarray  # (n, 2)
-    scale_px_per_mm: np.ndarray  # (n,)
-    angle_deg: np.ndarray  # (n,)
-
-
-def holder_poses(corners: np.ndarray, holder: HolderConfig) -> HolderPoses:
-    """``holder_pose`` vectorised over (n, 4, 2) corners (all finite)."""
-    c = np.asarray(corners, float).reshape(-1, 4, 2)
-    u_vec = ((c[:, 1] - c[:, 0]) + (c[:, 2] - c[:, 3])) / 2
-    v_vec = ((c[:, 3] - c[:, 0]) + (c[:, 2] - c[:, 1])) / 2
-    su, sv = holder.size_mm
-    nu, nv = np.hypot(*u_vec.T), np.hypot(*v_vec.T)
-    if np.any(nu == 0) or np.any(nv == 0):
-        raise VisionError("degenerate holder corners (zero-length edge)")
-    u_hat = u_vec / nu[:, None]
-    v_perp = v_vec - u_hat * np.sum(u_hat * v_vec, axis=1)[:, None]
-    v_hat = v_perp / np.hypot(*v_perp.T)[:, None]
-    scale = (nu / su + nv / sv) / 2
-    tu, tv = holder.target_mm
-    target = c.mean(axis=1) + scale[:, None] * (tu * u_hat + tv * v_hat)
-    return HolderPoses(target, scale, np.degrees(np.arctan2(u_hat[:, 1], u_hat[:, 0])))
 
 
 def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -762,7 +694,11 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
                         progress=progress, recorder=recorder,
                         frames_per_step=plan.frames_per_step, angles=plan.angles(),
                         approach=approach)
-    raw = dataclasses.replace(raw, points=_one_corner_order(raw, holder))
+    points, ref = _one_corner_order(raw, holder)
+    raw = dataclasses.replace(raw, points=points)
+    config_holder = holder
+    if ref is not None and ref.swapped:  # refused below, once the axis names the target
+        holder = image_frame(holder, ref)
     data = dataclasses.replace(raw, readback_deg=amap.image_angles(raw.readback_deg).tolist())
     n_ok = int(data.tracked.sum())
     n = len(data.readback_deg)
@@ -794,6 +730,12 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     except (ValueError, np.linalg.LinAlgError) as exc:
         raise SolveError(f"{kind} sweep {iteration}: centre solve failed: {exc}") from exc
     t1 = time.perf_counter()
+    # the config's target against the axis, before the sweep joins the pool or anything
+    # moves on it (target_side)
+    if ref is not None and ref.swapped:
+        raise swapped_frame_error(rect.points, rect.readback_deg, centre.center_px,
+                                  config_holder, ref)
+    check_target_side(rect.points, rect.readback_deg, centre.center_px, holder)
     warning = ""
     used: CentreResult | PooledCentre = centre
     if pool is not None:
@@ -843,12 +785,13 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     return data, m, warning
 
 
-def _one_corner_order(data: SweepData, holder: HolderConfig) -> np.ndarray:
+def _one_corner_order(data: SweepData, holder: HolderConfig
+                      ) -> tuple[np.ndarray, ReferenceOrder | None]:
     """The corners of every frame in the order of the frame nearest turntable 0 (the
-    holder frame of the config): a tracker may restart its order when the holder has
-    turned far, as over a +-45 deg sweep, which would turn the target round the holder.
-    ConfigError where that frame's u and v are the other way round from holder.size_mm
-    (before anything is fitted or moved on it)."""
+    holder frame of the config), and that frame's order: a tracker may restart its order
+    when the holder has turned far, as over a +-45 deg sweep, which would turn the target
+    round the holder. ConfigError where that frame's numbering is the noise's (a square
+    holder at its diagonal), before anything is fitted or moved on it."""
     points, ref = holder_frame_order(data.points, data.readback_deg, holder.size_mm)
     if ref is not None and ref.ambiguous:
         raise ConfigError(
@@ -858,20 +801,7 @@ def _one_corner_order(data: SweepData, holder: HolderConfig) -> np.ndarray:
             "first is decided by noise alone (the target would turn a quarter round the "
             "holder from one sweep to the next). Fix: turn the top camera or the holder by "
             "10 deg or more; no stage was moved on this sweep's data")
-    if ref is not None and ref.swapped:
-        su, sv = holder.size_mm
-        tu, tv = (t + 0.0 for t in ref.image_target_mm(holder.target_mm))  # (no -0)
-        raise ConfigError(
-            f"holder frame swapped: holder.size_mm [{su:g}, {sv:g}] gives u (corner 0 -> 1, "
-            f"the top side in the image) the {'longer' if su > sv else 'shorter'} side, but "
-            f"in the top image at turntable 0 u measures {ref.u_px:.0f} px and v "
-            f"{ref.v_px:.0f} px: the camera (or the holder) is turned past the holder's "
-            f"diagonal. Fix: set holder.size_mm: [{sv:g}, {su:g}] and holder.target_mm: "
-            f"[{tu:g}, {tv:g}] (the same point in the image's frame, if your u pointed right "
-            "in the image: check the target on the run's picture; docs/configure.md, the "
-            "holder frame), or run `alignctl commission`; no stage was moved on this "
-            "sweep's data")
-    return points
+    return points, ref
 
 
 def sweep_runout(rig: Rig, cfg: AligndConfig, tools: Tools, *, half_deg: float = 180.0,

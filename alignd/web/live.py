@@ -131,7 +131,7 @@ class LiveView:
 
     def _draw_top(self, small: np.ndarray, full: np.ndarray, scale: float,
                   centre: Centre | None) -> dict[str, Any]:
-        from alignd.procedures.sweep import holder_pose
+        from alignd.procedures.holder_geometry import holder_pose
         from alignd.vision import Lens, linearise, track_holder
 
         def pt(p: Any) -> tuple[int, int]:
