@@ -21,6 +21,7 @@ __all__ = [
     "DeviceError",
     "DeviceFault",
     "DeviceTimeoutError",
+    "HolderFrameError",
     "InputError",
     "LimitError",
     "MissedTargetError",
@@ -35,6 +36,16 @@ __all__ = [
 
 class ConfigError(AligndError):
     """A config file is missing, malformed, or inconsistent (names file and key path)."""
+
+
+class HolderFrameError(ConfigError):
+    """The config's holder frame disagrees with what a sweep saw (the target on the holder's
+    other side, u and v swapped); ``evidence`` is what the run's picture draws: the axis and
+    the targets in the top image (JSON-ready)."""
+
+    def __init__(self, message: str, evidence: dict[str, object]) -> None:
+        super().__init__(message)
+        self.evidence = evidence
 
 
 class InputError(AligndError):

@@ -53,6 +53,7 @@ VERIFY_COLOUR = (160, 90, 0)
 TOL_COLOUR = (0, 150, 0)
 AXIS_COLOUR = (255, 255, 0)
 FONT = cv2.FONT_HERSHEY_SIMPLEX
+HALO = [(dx, dy) for dx in (-2, -1, 0, 1, 2) for dy in (-2, -1, 0, 1, 2) if dx or dy]
 
 
 def _find(obj: Any, names: Iterable[str]) -> Any:
@@ -180,9 +181,12 @@ class Labels:
                 self.boxes.append(box)
                 if shadow:
                     _text(self.img, text, (ox, oy), size, colour)
-                else:  # a white halo keeps it legible over lines and dashes
-                    cv2.putText(self.img, text, (ox, oy), FONT, size, (255, 255, 255), 4,
-                                cv2.LINE_AA)
+                else:  # a white halo keeps it legible over lines, dashes and frames
+                    # (drawn at the text's own thickness, shifted: a thicker stroke has a
+                    # wider glyph advance, and its halo ran past the text's end)
+                    for dx, dy in HALO:
+                        cv2.putText(self.img, text, (ox + dx, oy + dy), FONT, size,
+                                    (255, 255, 255), 1, cv2.LINE_AA)
                     cv2.putText(self.img, text, (ox, oy), FONT, size, colour, 1, cv2.LINE_AA)
                 return True
         return False
@@ -315,18 +319,30 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
             cv2.line(view, cc, tt, TARGET_COLOUR, 1, cv2.LINE_AA)
             cv2.circle(view, tt, 7, TARGET_COLOUR, 2, cv2.LINE_AA)
 
+    refused = (run.get("details") or {}).get("holder_frame_refused")
+    if rec is None and isinstance(refused, dict):
+        refused_items = _draw_refused_frame(view, refused, to_frame, scale,
+                                            (pick or {}).get("angle_deg") or 0.0)
+    else:
+        refused_items = []
+
     # legend (bottom left): corner paths, centre, target
     items: list[tuple[str, tuple[int, int, int], str]] = [
         (f"corner {k} path", PATH_COLOURS[k % len(PATH_COLOURS)], "dot") for k in range(n_feat)]
     if rec is not None:
         items.append(("centre of rotation", CENTRE_COLOUR, "cross"))
         items.append(("target (sample surface middle)", TARGET_COLOUR, "ring"))
+    items += refused_items
     y = H - 12 - 18 * (len(items) - 1)
     for text, colour, mark in items:
         if mark == "dot":
             cv2.line(view, (12, y - 5), (28, y - 5), colour, 2, cv2.LINE_AA)
         elif mark == "cross":
             cv2.drawMarker(view, (20, y - 5), colour, cv2.MARKER_CROSS, 12, 2, cv2.LINE_AA)
+        elif mark == "crossed ring":
+            cv2.circle(view, (20, y - 5), 5, colour, 2, cv2.LINE_AA)
+            cv2.drawMarker(view, (20, y - 5), colour, cv2.MARKER_TILTED_CROSS, 14, 2,
+                           cv2.LINE_AA)
         else:
             cv2.circle(view, (20, y - 5), 5, colour, 2, cv2.LINE_AA)
         _text(view, text, (36, y), 0.45, colour)
@@ -349,20 +365,72 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
         J = np.asarray(J, float)
         roles = _find(run.get("details") or {}, ("roles",)) or ["x", "y"]
         o = (width - 100, H - 120)
+        mean = np.zeros(2)
         for k in range(min(2, J.shape[1])):
             d = J[:, k] / (np.hypot(*J[:, k]) or 1.0)
+            mean += d
             tip = (round(o[0] + 45 * d[0]), round(o[1] + 45 * d[1]))
             _arrow(view, o, tip, AXIS_COLOUR)
             _text(view, f"+{roles[k]}", (tip[0] + (6 if d[0] >= 0 else -26),
                                           tip[1] + (14 if d[1] > 0.3 else -4)), 0.5,
                   AXIS_COLOUR)
-        _text(view, "stage moves", (o[0] - 92, o[1] + 4), 0.4, AXIS_COLOUR)
+        # the label on the side the arrows leave free
+        away = -mean / (np.hypot(*mean) or 1.0)
+        tw = cv2.getTextSize("stage moves", FONT, 0.4, 1)[0][0]
+        _text(view, "stage moves", (round(o[0] + 22 * away[0] - tw / 2 + away[0] * tw / 2),
+                                    round(o[1] + 22 * away[1] + 5)), 0.4, AXIS_COLOUR)
     if pick is not None and sweep is not None:
         what = f"{sweep.get('kind')} sweep {sweep.get('iteration')}"
         if pick.get("angle_deg") is not None:
             what += f", frame at {pick['angle_deg']:+.1f} deg"
         _text(view, what, (10, 22), 0.55)
     return view
+
+
+REFUSED_STYLE = {  # a refused holder frame's targets: colour, legend, marker
+    "config": (TARGET_COLOUR, "target as configured (holder.target_mm)", "crossed ring"),
+    "fix": ((60, 220, 60), "target the verdict names (near the axis)", "ring"),
+    "other": ((150, 150, 150), "the other target the image allows", "ring"),
+}
+REFUSED_INK = {"config": (170, 0, 170), "fix": (0, 120, 0), "other": (70, 70, 70)}  # labels
+
+
+def _draw_refused_frame(view: np.ndarray, refused: dict[str, Any],
+                        to_frame: Callable[[np.ndarray], np.ndarray], scale: float,
+                        angle_deg: float) -> list[tuple[str, tuple[int, int, int], str]]:
+    """A run refused on its holder frame (``details.holder_frame_refused``): the axis and
+    the targets the verdict compares, each at its offset from the axis turned to the
+    drawn frame's angle, labelled with its holder.target_mm; the legend's items."""
+    try:
+        c = np.asarray(refused["centre_px"], float).reshape(2)
+        targets = [(str(t["role"]), np.asarray(t["offset_px"], float).reshape(2),
+                    [float(v) for v in t["target_mm"]], float(t["offset_mm"]))
+                   for t in refused["targets"]]
+    except (KeyError, TypeError, ValueError):
+        return []  # an old or foreign record: nothing drawn rather than a wrong mark
+    cc = _pt(to_frame(c), scale)
+    labels = Labels(view)
+    labels.reserve((cc[0] - 13, cc[1] - 13, cc[0] + 13, cc[1] + 13))
+    items: list[tuple[str, tuple[int, int, int], str]] = [
+        ("centre of rotation", CENTRE_COLOUR, "cross")]
+    placed = []
+    for role, off, t_mm, off_mm in targets:
+        colour, legend, mark = REFUSED_STYLE.get(role, REFUSED_STYLE["other"])
+        tt = _pt(to_frame(c + _rot(angle_deg) @ off), scale)
+        labels.reserve((tt[0] - 11, tt[1] - 11, tt[0] + 11, tt[1] + 11))
+        cv2.line(view, cc, tt, colour, 1, cv2.LINE_AA)
+        cv2.circle(view, tt, 9, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.circle(view, tt, 9, colour, 2, cv2.LINE_AA)
+        if mark == "crossed ring":
+            cv2.drawMarker(view, tt, colour, cv2.MARKER_TILTED_CROSS, 20, 2, cv2.LINE_AA)
+        placed.append((f"[{t_mm[0]:g}, {t_mm[1]:g}]: {off_mm:.2f} mm from the axis", tt,
+                       REFUSED_INK.get(role, REFUSED_INK["other"])))
+        items.append((legend, colour, mark))
+    cv2.drawMarker(view, cc, (0, 0, 0), cv2.MARKER_CROSS, 26, 4, cv2.LINE_AA)
+    cv2.drawMarker(view, cc, CENTRE_COLOUR, cv2.MARKER_CROSS, 24, 2, cv2.LINE_AA)
+    for text, at, ink in placed:  # after every mark is reserved: no label covers one
+        labels.put(text, at, ink, 0.45)
+    return items
 
 
 def _ellipse(img: np.ndarray, centre: tuple[float, float], cov: np.ndarray, k: float,

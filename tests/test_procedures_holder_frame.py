@@ -164,14 +164,14 @@ def _turned(rotation_deg: int, world_holder_mm: tuple[float, float] | None = Non
         update={"world": world})})
 
 
-def _refused_before_moving(cfg: AligndConfig, seed: int) -> str:
+def _refused_before_moving(cfg: AligndConfig, seed: int) -> tuple[str, dict[str, Any]]:
     rig, world = scene_rig(cfg, seed)
     start = world.truth()["offset_norm_um"]
     res = run_alignment(rig, cfg, tools=_tools(seed))
     assert res.verdict == "fault" and res.exit_code == 2, res.reason
     assert "no stage was moved" in res.reason
     assert world.truth()["offset_norm_um"] == pytest.approx(start, abs=5.0)
-    return res.reason
+    return res.reason, res.details
 
 
 def _aligns(cfg: AligndConfig, seed: int) -> None:
@@ -186,9 +186,13 @@ def test_a_camera_turned_180_deg_is_refused_with_the_target_on_the_sample_side()
     when the camera is turned 180 deg. A run chased that point 35 mm off the axis, 5 mm a
     move, and ended "not converged"; the first sweep now finds the point opposite it near
     the axis and refuses, naming it."""
-    reason = _refused_before_moving(_turned(180), 6)
+    reason, details = _refused_before_moving(_turned(180), 6)
     assert "target on the other side" in reason
     assert "set holder.target_mm: [0, 17.5]" in reason and "180 deg" in reason
+    # what the run's picture draws: the configured target 35 mm off, the named one near
+    drawn = {t["role"]: t for t in details["holder_frame_refused"]["targets"]}
+    assert drawn["config"]["offset_mm"] == pytest.approx(35.0, abs=3.0)
+    assert drawn["fix"]["offset_mm"] < 5.0 and drawn["fix"]["target_mm"] == [0.0, 17.5]
     _aligns(_turned(180, target_mm=(0.0, 17.5)), 6)
 
 
@@ -198,7 +202,7 @@ def test_a_swapped_frame_names_the_target_the_axis_is_near(
     """A camera turned 90 or 270 deg: the same lengths, the same image, the targets of the
     two turns opposite each other. The sample was put near the axis, so the sweep names its
     side (the fix used to assume u had pointed right, wrong for 270 deg)."""
-    reason = _refused_before_moving(_turned(rotation), 7)
+    reason, _ = _refused_before_moving(_turned(rotation), 7)
     assert "holder frame swapped" in reason
     assert f"holder.target_mm: [{target[0]:g}, {target[1]:g}] (the point the sample is at" \
         in reason
@@ -207,7 +211,7 @@ def test_a_swapped_frame_names_the_target_the_axis_is_near(
 
 def test_a_square_holder_turned_a_quarter_is_refused_with_the_turned_target() -> None:
     cfg = _turned(90, (30.0, 30.0), size_mm=(30.0, 30.0), target_mm=(0.0, -20.0))
-    reason = _refused_before_moving(cfg, 8)
+    reason, _ = _refused_before_moving(cfg, 8)
     assert "target on the other side" in reason and "a quarter turn" in reason
     assert "set holder.target_mm: [-20, 0]" in reason, reason
 

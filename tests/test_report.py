@@ -146,3 +146,44 @@ def test_report_notes_give_the_runs_warnings() -> None:
     tall = report.draw_notes(run)
     assert tall.shape[0] == report.NOTES_MAX_H
     assert (tall[-30:] < 100).any()
+
+
+def test_a_label_stays_inside_its_box() -> None:
+    """A label's white halo ends where its box ends: drawn with a thicker stroke, the halo
+    had a wider glyph advance and ran 10-20 px past the text over a dark frame."""
+    img = np.zeros((60, 400, 3), np.uint8)
+    labels = report.Labels(img)
+    assert labels.put("[17.5, 0]: 2.14 mm from the axis", (20, 30), (0, 120, 0), 0.45)
+    x0, _, x1, _ = labels.boxes[0]
+    _, xs = np.nonzero(img.max(axis=2) > 0)
+    assert xs.min() >= x0 - 2 and xs.max() <= x1 + 2, (xs.min(), xs.max(), labels.boxes)
+
+
+def test_a_refused_holder_frame_is_drawn_with_its_targets() -> None:
+    """A run refused on its holder frame says "check the target on the run's picture":
+    the picture draws the axis and the targets the verdict compares, at their offsets."""
+    run = {"id": 1, "kind": "align", "verdict": "fault", "reason": "refused: target ...",
+           "config": {"procedure": {"tolerance_um": 10.0}}, "iteration_records": [],
+           "result": {"verdict": "fault"},
+           "details": {"holder_frame_refused": {
+               "centre_px": [640.0, 360.0], "targets": [
+                   {"role": "config", "target_mm": [0.0, -17.5], "offset_mm": 35.3,
+                    "offset_px": [0.0, -230.0]},
+                   {"role": "fix", "target_mm": [0.0, 17.5], "offset_mm": 2.1,
+                    "offset_px": [0.0, 14.0]}]}}}
+    frame = np.full((720, 1280), 120, np.uint8)
+    view = report.draw_top_view(run, frame)
+    s = report.WIDTH / 1280
+    magenta = _mask(view, report.REFUSED_STYLE["config"][0])
+    green = _mask(view, report.REFUSED_STYLE["fix"][0])
+    near = np.zeros_like(magenta)
+    cy, cx = round(130 * s), round(640 * s)
+    near[cy - 12:cy + 12, cx - 12:cx + 12] = True
+    assert (magenta & near).sum() > 40  # the configured target's ring, 230 px above
+    near[:] = False
+    cy = round(374 * s)
+    near[cy - 12:cy + 12, cx - 12:cx + 12] = True
+    assert (green & near).sum() > 40
+    # an old record's unreadable evidence draws nothing rather than a wrong mark
+    run["details"]["holder_frame_refused"] = {"centre_px": [1.0]}
+    report.draw_top_view(run, frame)

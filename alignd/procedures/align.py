@@ -33,7 +33,14 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
 from alignd.config import AligndConfig
-from alignd.errors import AligndError, ConfigError, DeviceError, StateError, VisionError
+from alignd.errors import (
+    AligndError,
+    ConfigError,
+    DeviceError,
+    HolderFrameError,
+    StateError,
+    VisionError,
+)
 from alignd.procedures.angles import AngleMap
 from alignd.procedures.budget import Contribution
 from alignd.procedures.calibrate import Calibration, calibrate, configured_pixel_size_um
@@ -198,6 +205,7 @@ class _Run:
         verdict: Verdict = "fault"
         reason, config_error = "", False
         final: Measurement | None = None
+        holder_frame: dict[str, object] | None = None  # a refused holder frame's evidence
         try:
             with self.rig.abort_guard(self.abort):
                 self._prepare()
@@ -220,6 +228,8 @@ class _Run:
         except (ConfigError, StateError) as exc:
             self.rig.stop_all()
             verdict, reason, config_error = "fault", f"refused: {exc}", True
+            if isinstance(exc, HolderFrameError):
+                holder_frame = exc.evidence
         except DeviceError as exc:
             errs = self.rig.stop_all()
             verdict, reason = "fault", f"device error: {exc}" + (
@@ -256,6 +266,7 @@ class _Run:
             "calibration": None if self.st.calibration is None
             else self.st.calibration.to_dict(),
             "history": self.st.history, "warnings": self.st.warnings,
+            "holder_frame_refused": holder_frame,
             "final": None if final is None else final.to_dict(),
             "budget": None if final is None else final.budget.to_dict(),
             "decision": None if final is None else self._decision(final).to_dict(),

@@ -732,16 +732,20 @@ def measure(rig: Rig, cfg: AligndConfig, tools: Tools, *, kind: str, iteration: 
     t1 = time.perf_counter()
     # the config's target against the axis, before the sweep joins the pool or anything
     # moves on it (target_side)
+    Pinv = np.linalg.inv(P)
+
+    def to_image(p: np.ndarray) -> np.ndarray:
+        return apply_h(Pinv, p)
+
     if ref is not None and ref.swapped:
         raise swapped_frame_error(rect.points, rect.readback_deg, centre.center_px,
-                                  config_holder, ref)
-    check_target_side(rect.points, rect.readback_deg, centre.center_px, holder)
+                                  config_holder, ref, to_image)
+    check_target_side(rect.points, rect.readback_deg, centre.center_px, holder, to_image)
     warning = ""
     used: CentreResult | PooledCentre = centre
     if pool is not None:
         # pool in the camera's own image frame: each sweep's rectifier differs a little
         # (it depends on where the holder is), the axis' image point does not
-        Pinv = np.linalg.inv(P)
         c_img, cov_img = map_point(Pinv, centre.center_px, centre.cov_px2)
         if dataclasses.is_dataclass(centre):
             # the fit's parts of its covariance go the same way (the pool keeps them apart)

@@ -16,12 +16,13 @@ wrong, before any correction move is made on it.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from alignd.config import HolderConfig
-from alignd.errors import ConfigError
+from alignd.errors import HolderFrameError
 from alignd.procedures.angles import SQUARE_WITHIN, ReferenceOrder
 from alignd.procedures.holder_geometry import holder_poses, rot
 
@@ -43,6 +44,11 @@ class TargetCandidate:
     target_mm: tuple[float, float]  # in the holder frame the image numbers
     offset_mm: float  # its distance from the axis at turntable 0
     quarter_turns: int  # from the configured target
+    offset_px: np.ndarray  # from the axis at turntable 0, in the sweep's image
+
+
+# the sweep's points -> the camera's image (the sweep is measured rectified)
+ToImage = Callable[[np.ndarray], np.ndarray]
 
 
 def candidate_offsets(points: np.ndarray, angles_deg: np.ndarray | list[float],
@@ -60,9 +66,23 @@ def candidate_offsets(points: np.ndarray, angles_deg: np.ndarray | list[float],
     out = []
     for k in quarter_turns:
         t = turned(holder.target_mm, k)
-        off = np.einsum("nij,nj->ni", back, poses.at(t) - c).mean(axis=0) / scale
-        out.append(TargetCandidate((t[0] + 0.0, t[1] + 0.0), float(np.hypot(*off)), k))
+        off = np.einsum("nij,nj->ni", back, poses.at(t) - c).mean(axis=0)
+        out.append(TargetCandidate((t[0] + 0.0, t[1] + 0.0), float(np.hypot(*off)) / scale,
+                                   k, off))
     return out
+
+
+def _evidence(centre_px: np.ndarray, to_image: ToImage,
+              drawn: list[tuple[TargetCandidate, str]]) -> dict[str, object]:
+    """What the run's picture draws (report.py): the axis and each target's offset from
+    it at turntable 0 in the camera's image, with its label and role ("config": the
+    configured target, "fix": the one the message names)."""
+    c = np.asarray(centre_px, float)
+    ci = to_image(c[None])[0]
+    return {"centre_px": [float(v) for v in ci], "targets": [
+        {"role": role, "target_mm": list(t.target_mm), "offset_mm": t.offset_mm,
+         "offset_px": [float(v) for v in to_image((c + t.offset_px)[None])[0] - ci]}
+        for t, role in drawn]}
 
 
 def _fmt(t: tuple[float, float]) -> str:
@@ -70,8 +90,9 @@ def _fmt(t: tuple[float, float]) -> str:
 
 
 def check_target_side(points: np.ndarray, angles_deg: np.ndarray | list[float],
-                      centre_px: np.ndarray, holder: HolderConfig) -> None:
-    """ConfigError where the configured target lies far from the axis and a turned one
+                      centre_px: np.ndarray, holder: HolderConfig,
+                      to_image: ToImage = lambda p: p) -> None:
+    """HolderFrameError where the configured target lies far from the axis and a turned one
     near it (module docstring); nothing where the target is nearer the holder's centre than
     MIN_TARGET_MM."""
     d = math.hypot(*holder.target_mm)
@@ -90,14 +111,15 @@ def check_target_side(points: np.ndarray, angles_deg: np.ndarray | list[float],
     why = ("the top camera turned 180 deg from the one the config was written for, or the "
            "holder mounted the other way round" if near.quarter_turns == 2 else
            "the top camera or the square holder turned by 90 deg")
-    raise ConfigError(
+    raise HolderFrameError(
         f"target on the other side: holder.target_mm {_fmt(holder.target_mm)} lies "
         f"{here.offset_mm:.2f} mm from the rotation axis at turntable 0, but the point "
         f"{how}, {_fmt(near.target_mm)}, lies {near.offset_mm:.2f} mm from it: the sample "
         f"is not where holder.target_mm puts it ({why}). Fix: set holder.target_mm: "
         f"{_fmt(near.target_mm)} (check the target on the run's picture; docs/configure.md, "
         "the holder frame); if the sample really is that far from the axis, move it nearer "
-        "by hand; no stage was moved on this sweep's data")
+        "by hand; no stage was moved on this sweep's data",
+        _evidence(centre_px, to_image, [(here, "config"), (near, "fix")]))
 
 
 def image_frame(holder: HolderConfig, ref: ReferenceOrder) -> HolderConfig:
@@ -110,8 +132,8 @@ def image_frame(holder: HolderConfig, ref: ReferenceOrder) -> HolderConfig:
 
 
 def swapped_frame_error(points: np.ndarray, angles_deg: np.ndarray | list[float],
-                        centre_px: np.ndarray, holder: HolderConfig,
-                        ref: ReferenceOrder) -> ConfigError:
+                        centre_px: np.ndarray, holder: HolderConfig, ref: ReferenceOrder,
+                        to_image: ToImage = lambda p: p) -> HolderFrameError:
     """The refusal of a config whose u and v are the other way round from the image's,
     naming the target that lies near the swept axis: of the two a symmetric rectangle
     cannot tell apart (turned one way or the other), the sample's side."""
@@ -128,11 +150,12 @@ def swapped_frame_error(points: np.ndarray, angles_deg: np.ndarray | list[float]
         which = (f"if your u pointed right in the image; neither it ({guess.offset_mm:.2f} "
                  f"mm) nor {_fmt(other.target_mm)} ({other.offset_mm:.2f} mm) lies near the "
                  "rotation axis: check the target on the run's picture")
-    return ConfigError(
+    return HolderFrameError(
         f"holder frame swapped: holder.size_mm [{su:g}, {sv:g}] gives u (corner 0 -> 1, "
         f"the top side in the image) the {'longer' if su > sv else 'shorter'} side, but "
         f"in the top image at turntable 0 u measures {ref.u_px:.0f} px and v "
         f"{ref.v_px:.0f} px: the camera (or the holder) is turned past the holder's "
         f"diagonal. Fix: set holder.size_mm: [{sv:g}, {su:g}] and holder.target_mm: "
         f"{_fmt(guess.target_mm)} ({which}; docs/configure.md, the holder frame), or run "
-        "`alignctl commission`; no stage was moved on this sweep's data")
+        "`alignctl commission`; no stage was moved on this sweep's data",
+        _evidence(centre_px, to_image, [(guess, "fix"), (other, "other")]))
