@@ -77,6 +77,7 @@ from drivers.sim.scenes import (  # noqa: E402
     random_rim_scene,
     random_side_scene,
     random_top_scene,
+    sample_beside_scene,
 )
 
 GRADIENT = (0.2, 0.1)
@@ -654,6 +655,26 @@ PLATE_LEVELS = {"lighter plate 60/170/230 DN": (60.0, 170.0, 230.0),
 PLATE_LENS_K1 = (-0.12, 0.12)  # the plates seen through a distorting lens, off its centre
 
 
+# disc, holder, sample DN: the holder between the two
+BETWEEN_LEVELS = {"grey holder, white sample, dark disc 60/150/240 DN": (60.0, 150.0, 240.0),
+                  "light holder 190/215/245 DN": (190.0, 215.0, 245.0),
+                  "dark holder, black sample, light disc 200/110/40 DN": (200.0, 110.0, 40.0)}
+
+
+def samples_beside(quick: bool) -> list[Target]:
+    """A holder lighter than its disc and darker than the sample along one side, or the
+    other way round (:func:`sample_beside_scene`, not in the corpus, whose samples always
+    contrast with the holder as the disc does): that side steps the other way, and such
+    holders were refused (docs/vision.md, "A holder between two levels"). Per set of
+    levels: samples 12 and 30 px wide (the full run adds 8 and 60), at several angles."""
+    widths = (12.0, 30.0) if quick else (8.0, 12.0, 30.0, 60.0)
+    angles = (7.0, -25.0) if quick else (7.0, -25.0, 0.0, 40.0, 90.0)
+    return [_drawn(f"holder between its disc and sample {label}",
+                   ((*sample_beside_scene(wd, ang, levels, seed=k), None)
+                    for k, (wd, ang) in enumerate((wd, ang) for wd in widths for ang in angles)))
+            for label, levels in BETWEEN_LEVELS.items()]
+
+
 def plates(quick: bool) -> list[Target]:
     """A sample plate on the holder with its edges 2-6 px inside the holder's, or 2 px
     inside two adjacent sides and 12 px inside the others (:func:`plate_scene`, not in
@@ -953,6 +974,7 @@ def main(argv: list[str] | None = None) -> int:
         targets += top_targets(print_top(c_top, args.seed + 100, args.size))
         targets += hard_shadows(args.quick)
         targets += plates(args.quick)
+        targets += samples_beside(args.quick)
         targets += camera_frames(6 if args.quick else 60, args.seed + 400)
     if "side" in want:
         u_target = args.tilt_u_target or None

@@ -7,7 +7,6 @@ side has the holder's own level just inside it; the band's outer edge has the ba
 from __future__ import annotations
 
 import math
-import re
 
 import cv2
 import numpy as np
@@ -127,8 +126,10 @@ def test_a_strip_darker_than_the_holder_along_a_side_is_not_taken_into_it(
     make one dark rectangle 4 % too wide, inside the size tolerance, and it was returned
     ok, 8 px wrong. The band just inside that side steps away from the outside's level,
     not toward it, and is flagged all the same; the size puts the side at the inner step,
-    where the holder's edge is lighter than the strip (the other polarity), so it is
-    refused rather than returned wrong."""
+    where the holder's edge is lighter than the strip (the other polarity). That was
+    refused; beyond the strip the image steps back to the disc's level, which makes the
+    holder and its strip one outline, and the holder is measured with that side at the
+    inner step (tests/test_vision_holder_between.py)."""
     w, h = 1280, 720
     ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
     t = math.radians(angle_deg)
@@ -143,5 +144,5 @@ def test_a_strip_darker_than_the_holder_along_a_side_is_not_taken_into_it(
     img += np.random.default_rng(1).normal(0.0, 1.0, img.shape).astype(np.float32)
     det = track_holder(np.clip(np.rint(img), 0, 255).astype(np.uint8),
                        expected_size_px=(303.2, 193.0))
-    assert not det.ok or _corner_error(det.corners_px, held) < 1.0
-    assert not det.ok and re.search(r"second step [89] px inside", det.reason)
+    assert det.ok, det.reason
+    assert _corner_error(det.corners_px, held) < 0.3

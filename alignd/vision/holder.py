@@ -33,6 +33,7 @@ import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Literal
 
 import cv2
@@ -57,7 +58,11 @@ from alignd.vision.holder_bands import REACH as BAND_REACH
 from alignd.vision.holder_bands import SideProfiles, read_sides, side_bands
 from alignd.vision.holder_neighbours import REACH as NEIGHBOUR_REACH
 from alignd.vision.holder_neighbours import neighbour_steps, without_neighbours
-from alignd.vision.holder_search import search_candidates, voted_by_voters
+from alignd.vision.holder_search import (
+    search_candidates,
+    voted_by_voters,
+    voted_either_way,
+)
 from alignd.vision.holder_square import parallel_to, square_sides
 from alignd.vision.holder_steps import inner_step, side_frame
 from alignd.vision.lens import Lens
@@ -396,13 +401,23 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
 
     def later() -> Iterator[tuple[np.ndarray, float]]:
         """Once every box has failed: the rough ones allowing more scatter, then the boxes
-        voted again with their peaks' own directions, those not refined yet."""
+        voted again with their peaks' own directions, then with sides paired whichever way
+        they contrast, those not refined yet."""
         yield from ((box, max_rms_px * _SECOND_RMS_FACTOR) for box in rough)
-        if expected_size_px is not None and tried:
+        if expected_size_px is None:
+            return
+        seen = list(tried)
+        if tried:
             for box in voted_by_voters(gray, expected_size_px, min_contrast, size_tolerance,
                                        max_candidates):
                 if not any(_shift(order_corners(box, b), b) < 8.0 for b in tried):
+                    seen.append(order_corners(box))
                     yield box, max_rms_px
+        for box in voted_either_way(gray, expected_size_px, min_contrast, size_tolerance,
+                                    max_candidates):
+            if not any(_shift(order_corners(box, b), b) < 8.0 for b in seen):
+                seen.append(order_corners(box))
+                yield box, max_rms_px
 
     # the voted boxes take at most max_candidates tries, and the threshold ladder's, which
     # follow, a few more: where the holder's two sizes pair at different scales (a plate
@@ -509,7 +524,29 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
     if again.ok and inner_step(gray, again.corners_px) is None:
         log.debug("top image: %s; measured at the inner step instead", why)
         return again
+    # a strip beside the side contrasting the other way (a white sample beside a grey
+    # holder on a dark disc) steps back to the disc at its far edge, the stronger step,
+    # which the +-10 px search finds again: the fine windows straight on the inner step,
+    # kept only where that side is the strip's (sides of both contrasts, _strip_side)
+    try:
+        inner = _refine(gray, order_corners(moved), polarity, expected_size_px, hint,
+                        min_contrast, max_rms_px, passes, lens, size_tolerance, profile,
+                        seeded=True)
+    except VisionError:
+        return _not_ok(replace(det, reason=""), why)
+    if inner.ok and inner_step(gray, inner.corners_px) is None \
+            and _beside_a_strip(inner, lens):
+        log.debug("top image: %s; measured at the inner step, beside a strip", why)
+        return inner
     return _not_ok(replace(det, reason=""), why)
+
+
+def _beside_a_strip(det: HolderDetection, lens: Lens | None) -> bool:
+    """Whether ``det``'s sides contrast both ways (one of them beside a strip: it passed
+    :func:`_strip_side`'s check)."""
+    lines = list(det.lines)
+    c = det.corners_px if lens is None else lens.undistort(det.corners_px)
+    return len(lines) == 4 and len(set(_outside_signs(lines, c))) > 1
 
 
 def _not_askew(gray: np.ndarray, det: HolderDetection, polarity: str | None,
@@ -703,26 +740,29 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
     them (``bands``) or measured again without a second step near them
     (``neighbours``)."""
     pol = _polarity(gray, corners)
+    # a side beside a strip (a white sample beside a grey holder on a dark disc) may
+    # contrast the other way
+    assemble = partial(_assemble, strip_side=_strip_side(gray, sides, corners, lens))
     # with the profile fit to follow, the area method's corner sigma is rarely reported:
     # its residual correlations are left out here and measured only when it is
-    det = _assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
+    det = assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
                     size_tolerance, inflate=not profile)
     hw, used, margin = _HALF_WIDTH, sides, _MARGIN
     if not det.ok and "rms" in det.reason:
         # a soft (defocused) edge overflows the +-5 px window: measure it in +-9 px
         wide = _fit_sides(gray, corners, _WIDE, _WIDE_MARGIN, min_contrast, lens)
-        det2 = _assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
+        det2 = assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
                          size_tolerance, inflate=not profile)
         if det2.ok:
             det = det2
             hw, used, margin = _WIDE, wide, _WIDE_MARGIN
     if profile and not det.ok:
-        det = _assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
+        det = assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
                         size_tolerance)
     elif profile:
         # the sides it passed, refined by the profile fit: kept when they pass as well
         fine, widths, bent = _profile_sides(gray, used, hw, margin, lens, blur)
-        det3 = _assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
+        det3 = assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
                          size_tolerance)
         # two estimates of the same corners must agree within the area method's
         # uncertainty (and the penumbra the profile fit modelled, which the area method
@@ -740,7 +780,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             # errs by 0.1-0.3 px itself (its tails inside the blur): a second opinion in
             # +-9 px may confirm the refined corners (the +-5 px ones stay the fallback)
             wide = _fit_sides(gray, corners, _WIDE, _WIDE_MARGIN, min_contrast, lens)
-            det9 = _assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
+            det9 = assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
                              size_tolerance, inflate=False)
             if det9.ok:
                 moved = _shift(det3.corners_px, det9.corners_px)
@@ -755,7 +795,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             # corners loosened the test and let a holder 3.4 px wrong through; from
             # corners within a px, a penumbra fooled both alike)
             again = _fit_sides(gray, det.corners_px, hw, margin, min_contrast, lens)
-            det2 = _assemble(again, det.corners_px, pol, expected_size_px, hint, max_rms_px,
+            det2 = assemble(again, det.corners_px, pol, expected_size_px, hint, max_rms_px,
                              lens, size_tolerance, inflate=False)
             if det2.ok and det2.fit_sigma_px <= det.fit_sigma_px:
                 moved = _shift(det3.corners_px, det2.corners_px)
@@ -765,7 +805,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                 float(v) for v in widths[_side_match(corners, det3.corners_px)]))
             why = _unlike_opposite_blurs(det.side_blur_px)
         else:
-            det = _assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
+            det = assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
                             size_tolerance)
             why = ""
             if det.ok and det.corner_sigma_px > _AREA_ALONE_SIGMA_PX:
@@ -1047,10 +1087,11 @@ def _columns_span(ln: Line, pts: EdgePoints) -> tuple[float, bool]:
 def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, pol: str,
               expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
               max_rms_px: float, lens: Lens | None = None, size_tolerance: float = 0.15,
-              inflate: bool = True) -> HolderDetection:
+              inflate: bool = True, strip_side: int | None = None) -> HolderDetection:
     """The detection the sides' lines make: corners, checks, pose and uncertainty
     (``inflate`` False: corner_sigma_px without the sides' residual correlation, for a
-    detection whose uncertainty is not reported)."""
+    detection whose uncertainty is not reported; ``strip_side``: the side beside which
+    :func:`_strip_beside` found a strip, which may contrast the other way)."""
     lines = [s[0] for s in sides]
     reasons = []
     edge_ok = []
@@ -1115,7 +1156,7 @@ def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, 
         if not _convex(out):
             ok = False
             reasons.append("fitted sides do not form a convex quadrilateral")
-        elif len(set(signs)) > 1:
+        elif len(set(signs)) > 1 and not _one_strip_reversed(signs, strip_side):
             ok = False
             reasons.append("sides of both polarities (not one object): "
                            + ", ".join("+" if v > 0 else "-" for v in signs))
@@ -1246,6 +1287,86 @@ def _outside_signs(lines: list[Line | None], corners: np.ndarray) -> list[int]:
         toward_plus_is_out = minor_ctr < at
         out.append(int(np.sign(ln.contrast if toward_plus_is_out else -ln.contrast)))
     return out
+
+
+def _one_strip_reversed(signs: list[int], strip_side: int | None) -> bool:
+    """Whether the sides' contrasts differ only at ``strip_side``, the other three alike."""
+    if strip_side is None or len(signs) != 4:
+        return False
+    others = {v for k, v in enumerate(signs) if k != strip_side}
+    return len(others) == 1 and signs[strip_side] != next(iter(others))
+
+
+def _strip_side(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
+                corners: np.ndarray, lens: Lens | None) -> int | None:
+    """The side beside which a strip lies, contrasting the other way from the holder's
+    surroundings: None unless exactly one side's edge contrasts against the other three
+    and the image beyond it steps back to their surroundings' level (:func:`_strip_beside`).
+
+    A holder between two levels (a grey aluminium holder on a dark disc with a white
+    sample along one side; a dark holder on a light disc with a black one) has that side
+    stepping up while the others step down: such a box was refused as straddling two
+    objects. Beyond the strip the image steps back to the disc, and the holder and its
+    strip make one outline, which a box across two objects does not."""
+    if any(ln is None for ln, _pts in sides):
+        return None
+    c = corners if lens is None else lens.undistort(corners)
+    signs = _outside_signs([ln for ln, _pts in sides], c)
+    if len(set(signs)) != 2 or sorted(signs).count(signs[0]) not in (1, 3):
+        return None
+    odd = next(k for k in range(4) if signs.count(signs[k]) == 1)
+    return odd if _strip_beside(gray, corners, odd) else None
+
+
+# the strip beside a side: its levels read over the middle 80 % of the side, the face
+# _STRIP_IN px inside, the surroundings _STRIP_OUT px outside the other sides; the strip
+# may be up to _STRIP_MAX of the adjacent sides' length wide (a sample 3-10 mm against a
+# holder 20-100 mm deep), and beyond it the image must be back on the surroundings' side
+# of the face level by half their difference, over _STRIP_RUN px
+_STRIP_IN, _STRIP_OUT, _STRIP_MAX, _STRIP_RUN = (-8.0, -3.0), (4.0, 9.0), 0.6, 4.0
+# ... and the strip itself, from _STRIP_NEAR px beyond the side, must differ from the face
+# by _STRIP_MIN_DN the other way (a strip 8 px wide, blurred, stays short of its level)
+_STRIP_NEAR, _STRIP_MIN_DN = (1.5, 9.0), 5.0
+
+
+def _strip_beside(gray: np.ndarray, corners: np.ndarray, k: int) -> bool:
+    """Whether side ``k`` of the quadrilateral has a strip beside it whose far edge steps
+    back to the level outside the other three sides (see :func:`_strip_side`)."""
+    c = np.asarray(corners, float)
+    ctr = c.mean(axis=0)
+    lengths = _side_lengths(c)
+    reach = _STRIP_MAX * float(lengths[(k + 1) % 4] + lengths[(k + 3) % 4]) / 2
+    d = np.arange(_STRIP_IN[0], reach + _STRIP_RUN + 0.5, 0.5, dtype=np.float32)
+    t = np.linspace(0.1, 0.9, 32, dtype=np.float32)
+    levels = []
+    for i in range(4):
+        a, b = c[i], c[(i + 1) % 4]
+        along = b - a
+        n = np.array([-along[1], along[0]]) / (np.hypot(*along) or 1.0)
+        if np.dot((a + b) / 2 - ctr, n) < 0:
+            n = -n  # outward
+        dist = d if i == k else d[d <= _STRIP_OUT[1]]
+        p = a[None, None] + t[:, None, None] * along[None, None] + \
+            dist[None, :, None] * n[None, None]
+        prof = cv2.remap(gray.astype(np.float32, copy=False), p[..., 0].astype(np.float32),
+                         p[..., 1].astype(np.float32), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+        levels.append((dist, np.median(prof, axis=0)))  # across the side, robust to clutter
+    face = float(np.median([np.median(lv[(x >= _STRIP_IN[0]) & (x <= _STRIP_IN[1])])
+                            for x, lv in levels]))
+    around = float(np.median([np.median(lv[(x >= _STRIP_OUT[0]) & (x <= _STRIP_OUT[1])])
+                              for i, (x, lv) in enumerate(levels) if i != k]))
+    x, lv = levels[k]
+    # the strip's level: its extreme just beyond the side (a narrow strip, blurred, may
+    # not reach its own level anywhere)
+    toward = float(np.sign(around - face))
+    near = lv[(x >= _STRIP_NEAR[0]) & (x <= _STRIP_NEAR[1])]
+    if float(np.min((near - face) * toward)) > -_STRIP_MIN_DN:
+        return False  # no strip of the other contrast just beyond the side
+    back = (lv - face) * toward >= 0.5 * abs(around - face)
+    run = max(1, round(_STRIP_RUN / 0.5))
+    beyond = back & (x > _STRIP_NEAR[0])
+    return bool(np.any(np.convolve(beyond, np.ones(run), "valid") >= run))
 
 
 def _convex(c: np.ndarray) -> bool:

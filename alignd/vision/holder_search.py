@@ -53,6 +53,19 @@ def voted_by_voters(gray: np.ndarray, expected_size_px: tuple[float, float],
                                     size_tolerance=size_tolerance, by_voters=True), max_voted)
 
 
+def voted_either_way(gray: np.ndarray, expected_size_px: tuple[float, float],
+                     min_contrast: float, size_tolerance: float, max_voted: int | None = None
+                     ) -> list[np.ndarray]:
+    """The voted boxes with opposite sides paired whichever way their gradients point:
+    for a frame where every other box failed. A holder between two levels, lighter than
+    the disc and darker than a white sample beside it (or the other way round), has that
+    side's gradient the same way as the side opposite it, so its sides along the sample
+    never paired and its box was not voted at all."""
+    return _ranked(_vote_candidates(gray, expected_size_px, min_contrast,
+                                    size_tolerance=size_tolerance, either_way=True),
+                   max_voted)
+
+
 def _ranked(voted: list[tuple[float, np.ndarray, str]], max_voted: int | None
             ) -> list[np.ndarray]:
     """The voted boxes to refine, in order: those of a tenth of the best one's outline
@@ -230,7 +243,8 @@ class _EdgeMap:
 
 def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
                      min_contrast: float, max_peaks: int = 12, size_tolerance: float = 0.12,
-                     by_voters: bool = False) -> list[tuple[float, np.ndarray, str]]:
+                     by_voters: bool = False, either_way: bool = False
+                     ) -> list[tuple[float, np.ndarray, str]]:
     """Rectangles of the expected size found by centre voting, threshold-ladder free.
 
     At 1/4 scale every significant gradient pixel (beyond 4 noise sigma and twice the
@@ -245,7 +259,8 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
     in the image is measured first (:func:`_pair_scales`) and the votes cast at that size.
     At each peak the side directions are the dominant gradient orientation (mod 90 deg)
     around it (``by_voters``: of the edge pixels whose votes made it), and the long side is
-    the assignment whose outline has the stronger gradient.
+    the assignment whose outline has the stronger gradient. ``either_way``: a partner's
+    gradient may point either way (:func:`voted_either_way`).
     """
     h, w = gray.shape
     small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
@@ -267,16 +282,19 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
                   cv2.dilate(edges, np.ones((3, 3), np.uint8)) > 0)
     eL, eS = max(expected_size_px) / _DOWN, min(expected_size_px) / _DOWN
     out = []
-    scales = _pair_scales(em, (eS, eL), size_tolerance)
+    scales = _pair_scales(em, (eS, eL), size_tolerance, either_way)
     for scale in scales:  # as many peaks in all as one size had
-        out += _vote_at_size(em, eL * scale, eS * scale, max_peaks // len(scales), by_voters)
+        out += _vote_at_size(em, eL * scale, eS * scale, max_peaks // len(scales), by_voters,
+                             either_way)
     out.sort(key=lambda t: -t[0])
     return out
 
 
-def _partners(em: _EdgeMap, dist: np.ndarray, step: int = 1) -> np.ndarray:
+def _partners(em: _EdgeMap, dist: np.ndarray, step: int = 1, either_way: bool = False
+              ) -> np.ndarray:
     """(N / step, len(dist)) bool: edge pixel i (every ``step``-th) has a partner edge,
-    gradient the other way, ``dist[j]`` px away along its gradient (negative: against it)."""
+    gradient the other way (``either_way``: or the same way, parallel), ``dist[j]`` px away
+    along its gradient (negative: against it)."""
     sh, sw = em.near_edge.shape
     xs, ys, nx, ny = em.xs[::step], em.ys[::step], em.nx[::step], em.ny[::step]
     qx = np.rint(xs[:, None] + dist[None] * nx[:, None]).astype(np.intp)
@@ -288,11 +306,13 @@ def _partners(em: _EdgeMap, dist: np.ndarray, step: int = 1) -> np.ndarray:
     i, j = np.nonzero(hit)
     f = flat[i, j]
     qgx, qgy = em.gx.ravel()[f], em.gy.ravel()[f]
-    hit[i, j] = (qgx * nx[i] + qgy * ny[i]) < -0.7 * np.hypot(qgx, qgy)
+    along = qgx * nx[i] + qgy * ny[i]
+    hit[i, j] = (np.abs(along) if either_way else -along) > 0.7 * np.hypot(qgx, qgy)
     return hit
 
 
-def _pair_scales(em: _EdgeMap, sides: tuple[float, float], tolerance: float) -> list[float]:
+def _pair_scales(em: _EdgeMap, sides: tuple[float, float], tolerance: float,
+                 either_way: bool = False) -> list[float]:
     """The holder's size in the image over the expected size (within ``tolerance``), as
     measured from the distances at which opposite edges pair, and 1 (the expected size
     itself: a busy scene can outscore the holder's pairs) when that differs.
@@ -310,8 +330,8 @@ def _pair_scales(em: _EdgeMap, sides: tuple[float, float], tolerance: float) -> 
         dist = np.arange(math.floor(e * (1 - tolerance)) - 6,
                          math.ceil(e * (1 + tolerance)) + 7, dtype=float)
         # every other edge pixel: the holder's sides have hundreds, and it halves the cost
-        counts = (_partners(em, dist, 2).sum(axis=0) + _partners(em, -dist, 2).sum(axis=0)
-                  ).astype(float)
+        counts = (_partners(em, dist, 2, either_way).sum(axis=0)
+                  + _partners(em, -dist, 2, either_way).sum(axis=0)).astype(float)
         peak = (np.convolve(counts, [0.25, 0.5, 0.25], "same")
                 - np.convolve(counts, np.ones(11) / 11, "same"))
         score *= np.clip(np.interp(grid * e, dist, peak), 0.0, None)
@@ -321,8 +341,8 @@ def _pair_scales(em: _EdgeMap, sides: tuple[float, float], tolerance: float) -> 
     return [float(grid[k]), 1.0]
 
 
-def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int, by_voters: bool = False
-                  ) -> list[tuple[float, np.ndarray, str]]:
+def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int, by_voters: bool = False,
+                  either_way: bool = False) -> list[tuple[float, np.ndarray, str]]:
     """Centre voting (see :func:`_vote_candidates`) for a holder of eL x eS (1/4-scale px).
 
     Every peak is handled at once (one distance matrix, one histogram, one remap of all
@@ -333,7 +353,7 @@ def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int, by_voters:
     # only where the opposite side is there too: an edge a whole side away, its gradient
     # the other way (a circle, a single edge or another size does not pair)
     half = np.array([eS / 2, eL / 2, -eS / 2, -eL / 2])
-    ok = _partners(em, 2 * half)  # (N, 4)
+    ok = _partners(em, 2 * half, either_way=either_way)  # (N, 4)
     ei, di = np.nonzero(ok)
     cx = np.rint(xs[ei] + half[di] * nx[ei]).astype(np.int64)
     cy = np.rint(ys[ei] + half[di] * ny[ei]).astype(np.int64)
