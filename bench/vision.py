@@ -655,10 +655,11 @@ PLATE_LEVELS = {"lighter plate 60/170/230 DN": (60.0, 170.0, 230.0),
 PLATE_LENS_K1 = (-0.12, 0.12)  # the plates seen through a distorting lens, off its centre
 
 
-# disc, holder, sample DN: the holder between the two
-BETWEEN_LEVELS = {"grey holder, white sample, dark disc 60/150/240 DN": (60.0, 150.0, 240.0),
-                  "light holder 190/215/245 DN": (190.0, 215.0, 245.0),
-                  "dark holder, black sample, light disc 200/110/40 DN": (200.0, 110.0, 40.0)}
+# disc, holder, sample DN: the holder between the two (a grey holder with a white sample
+# on a dark disc; the simulated rig's light holder; a dark one with a black sample on a
+# light disc)
+BETWEEN_LEVELS = {"60/150/240 DN": (60.0, 150.0, 240.0), "190/215/245 DN": (190.0, 215.0, 245.0),
+                  "200/110/40 DN": (200.0, 110.0, 40.0)}
 
 
 def samples_beside(quick: bool) -> list[Target]:
@@ -669,7 +670,7 @@ def samples_beside(quick: bool) -> list[Target]:
     levels: samples 12 and 30 px wide (the full run adds 8 and 60), at several angles."""
     widths = (12.0, 30.0) if quick else (8.0, 12.0, 30.0, 60.0)
     angles = (7.0, -25.0) if quick else (7.0, -25.0, 0.0, 40.0, 90.0)
-    return [_drawn(f"holder between its disc and sample {label}",
+    return [_drawn(f"holder between disc and sample {label}",
                    ((*sample_beside_scene(wd, ang, levels, seed=k), None)
                     for k, (wd, ang) in enumerate((wd, ang) for wd in widths for ang in angles)))
             for label, levels in BETWEEN_LEVELS.items()]
