@@ -746,24 +746,24 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
     # with the profile fit to follow, the area method's corner sigma is rarely reported:
     # its residual correlations are left out here and measured only when it is
     det = assemble(sides, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                    size_tolerance, inflate=not profile)
+                   size_tolerance, inflate=not profile)
     hw, used, margin = _HALF_WIDTH, sides, _MARGIN
     if not det.ok and "rms" in det.reason:
         # a soft (defocused) edge overflows the +-5 px window: measure it in +-9 px
         wide = _fit_sides(gray, corners, _WIDE, _WIDE_MARGIN, min_contrast, lens)
         det2 = assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                         size_tolerance, inflate=not profile)
+                        size_tolerance, inflate=not profile)
         if det2.ok:
             det = det2
             hw, used, margin = _WIDE, wide, _WIDE_MARGIN
     if profile and not det.ok:
         det = assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                        size_tolerance)
+                       size_tolerance)
     elif profile:
         # the sides it passed, refined by the profile fit: kept when they pass as well
         fine, widths, bent = _profile_sides(gray, used, hw, margin, lens, blur)
         det3 = assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                         size_tolerance)
+                        size_tolerance)
         # two estimates of the same corners must agree within the area method's
         # uncertainty (and the penumbra the profile fit modelled, which the area method
         # reads as edge); where they do not, the model did not fit (a hole in the
@@ -781,7 +781,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             # +-9 px may confirm the refined corners (the +-5 px ones stay the fallback)
             wide = _fit_sides(gray, corners, _WIDE, _WIDE_MARGIN, min_contrast, lens)
             det9 = assemble(wide, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                             size_tolerance, inflate=False)
+                            size_tolerance, inflate=False)
             if det9.ok:
                 moved = _shift(det3.corners_px, det9.corners_px)
                 agree = moved <= _AGREE_PX + _AGREE_SIGMA * det9.fit_sigma_px + bent
@@ -796,7 +796,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             # corners within a px, a penumbra fooled both alike)
             again = _fit_sides(gray, det.corners_px, hw, margin, min_contrast, lens)
             det2 = assemble(again, det.corners_px, pol, expected_size_px, hint, max_rms_px,
-                             lens, size_tolerance, inflate=False)
+                            lens, size_tolerance, inflate=False)
             if det2.ok and det2.fit_sigma_px <= det.fit_sigma_px:
                 moved = _shift(det3.corners_px, det2.corners_px)
                 agree = moved <= _AGREE_PX + _AGREE_SIGMA * det2.fit_sigma_px + bent
@@ -806,7 +806,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             why = _unlike_opposite_blurs(det.side_blur_px)
         else:
             det = assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
-                            size_tolerance)
+                           size_tolerance)
             why = ""
             if det.ok and det.corner_sigma_px > _AREA_ALONE_SIGMA_PX:
                 # the edge model did not fit and the model-free corners are loose: what
@@ -1312,10 +1312,10 @@ def _strip_side(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
         return None
     c = corners if lens is None else lens.undistort(corners)
     signs = _outside_signs([ln for ln, _pts in sides], c)
-    if len(set(signs)) != 2 or sorted(signs).count(signs[0]) not in (1, 3):
+    alone = [k for k, v in enumerate(signs) if signs.count(v) == 1]
+    if len(alone) != 1:  # all alike, or two and two
         return None
-    odd = next(k for k in range(4) if signs.count(signs[k]) == 1)
-    return odd if _strip_beside(gray, corners, odd) else None
+    return alone[0] if _strip_beside(gray, corners, alone[0]) else None
 
 
 # the strip beside a side: its levels read over the middle 80 % of the side, the face
