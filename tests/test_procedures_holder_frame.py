@@ -258,6 +258,11 @@ def test_commission_takes_the_targets_side_from_the_translator(
         assert f is not None and f.name == "u and v swapped", rec.reason
         assert f.config_fix == {"holder.size_mm": [25.0, 40.0], "holder.target_mm": target}
         assert "the side the translator moves towards" in f.message
+        # the turntable measured in the image's own frame: rectified onto the config's
+        # lengths, the turn read as a 1.2 deg angle error and 207 um of error motion
+        runout, angle = rec.finding("turntable.runout"), rec.finding("turntable.angle_error")
+        assert runout is not None and runout.verdict == "pass" and runout.value < 10.0
+        assert angle is not None and angle.verdict == "pass" and angle.value < 0.01
     else:
         f = rec.finding("axis.translator.direction")
         assert f is not None and f.name == "away from the target", rec.reason

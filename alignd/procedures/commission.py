@@ -66,6 +66,7 @@ from alignd.procedures.sweep import (
     grab_rim_frames,
     rectifier,
 )
+from alignd.procedures.target_side import image_frame
 from alignd.procedures.tools import Tools, default_tools
 from drivers.camera import Camera, Frame
 from drivers.config import ToneCurve
@@ -874,8 +875,14 @@ class _Commission:
         # perspective first (as every sweep does): a tilted camera images the holder's circle
         # as an ellipse (a harmonic-2 motion that is no part of the bearing's) and its edges
         # turned by a little more or less than the table (no part of the encoder's error)
-        ordered, _ = holder_frame_order(points, rb, self.cfg.holder.size_mm)
-        rectified = apply_h(rectifier(ordered, self.cfg.holder), ordered)
+        # (in the image's own frame where the config's u and v are the other way round,
+        # which holder.size names: rectified onto the config's lengths, the holder's
+        # square-on view was squashed across, and its turn read as a 1.2 deg periodic
+        # angle error and 207 um of error motion)
+        ordered, ref = holder_frame_order(points, rb, self.cfg.holder.size_mm)
+        holder = self.cfg.holder if ref is None or not ref.swapped else \
+            image_frame(self.cfg.holder, ref)
+        rectified = apply_h(rectifier(ordered, holder), ordered)
         img_deg = holder_image_angles(rectified)
         fit = fit_slope(rb, img_deg)
         sign = fit.sign
