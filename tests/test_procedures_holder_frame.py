@@ -268,3 +268,7 @@ def test_commission_takes_the_targets_side_from_the_translator(
         assert f is not None and f.name == "away from the target", rec.reason
         assert f.config_fix == {"holder.target_mm": target}
         assert "the translator's direction is reversed" in f.message
+        # x and y inverted too: the three together name the camera, not the stages
+        turned = rec.finding("top.turned_half")
+        assert turned is not None and turned.name == "camera turned 180 deg", rec.reason
+        assert turned.config_fix == {"holder.target_mm": target}

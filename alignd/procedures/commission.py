@@ -658,6 +658,24 @@ class _Commission:
                 value=worst, unit="deg", expected=f"<= {MAX_TURN_DISAGREE_DEG}",
                 name="" if ok else "stages not on the table"))
 
+    def _turned_half(self) -> None:
+        """x, y and the translator all reversed in the holder frame: one finding that says
+        what the three mean together, a top camera turned 180 deg against the holder, and
+        that the stages are not what to change (the x and y findings alone advise
+        reversing them). With x and y alone reversed, stages wired the other way read the
+        same, and the two findings stand on their own."""
+        tu, tv = self.frame_target
+        self._add(Finding(
+            "top.turned_half", "warn",
+            "x and y both move the holder opposite the holder frame's u and v, and the "
+            "translator away from holder.target_mm: the top camera is turned 180 deg "
+            "against the holder (or the holder is mounted the other way round), rather than "
+            "three stages reversed. Turn the camera back, or keep it and set "
+            f"holder.target_mm: [{-tu + 0.0:g}, {-tv + 0.0:g}] (the sample's side, where the "
+            "translator moves); x and y inverted do not stop an alignment (its calibration "
+            "learns the mapping)", name="camera turned 180 deg",
+            config_fix={"holder.target_mm": [-tu + 0.0, -tv + 0.0]}))
+
     def _frame_target(self, translator: tuple[float, float] | None) -> tuple[float, float]:
         """holder.target_mm in the image's holder frame. Where u and v are the other way
         round from holder.size_mm, a symmetric rectangle names two targets, opposite each
@@ -753,6 +771,10 @@ class _Commission:
                 self.rec.findings[-1].name = "backlash exceeds approach"
                 self.rec.findings[-1].config_fix = {
                     f"axis.{role}.backlash_approach": round(3 * abs(m.backlash_mm), 4)}
+        tr = expected["translator"]
+        if (along.get("x") == (-1.0, 0.0) and along.get("y") == (0.0, -1.0)
+                and along.get("translator") == (-round(tr[0]), -round(tr[1]))):
+            self._turned_half()
         if "x" in self.rec.axes and "y" in self.rec.axes:
             a = self.rec.axes["x"].image_px_per_mm
             b = self.rec.axes["y"].image_px_per_mm
