@@ -196,6 +196,9 @@ def test_missing_holder_means_no_move_and_a_clear_reason() -> None:
     res = run_alignment(rig, cfg, tools=standin_tools(6, track=_failing_tracker(0)))
     assert res.verdict == "fault" and res.exit_code == 3
     assert "holder not found" in res.reason and "nothing moved" in res.reason
+    # what to check, with the size the tracker looked for (40 x 25 mm at 154 um/px)
+    assert "alignctl analyze top" in res.reason and "260 x 162 px" in res.reason
+    assert "15 DN" in res.reason
     for role in (*TRANSLATIONS, "turntable"):
         assert commanded(rig, role) == [], role
 

@@ -62,7 +62,13 @@ from alignd.procedures.sweep import (
     rim_turn_angles,
     sweep_runout,
 )
-from alignd.procedures.tools import RimReading, TiltReading, Tools, default_tools
+from alignd.procedures.tools import (
+    RimReading,
+    TiltReading,
+    Tools,
+    default_tools,
+    expected_holder_px,
+)
 from alignd.textfmt import identity_text
 from drivers.camera import Camera, Frame
 
@@ -623,8 +629,16 @@ class _Run:
                 break
             log.info("holder not found in top frame %d: %s", attempt + 1, det.reason)
         else:
-            raise VisionError(f"holder not found in {HOLDER_LOOK_FRAMES} top-camera frames "
-                              f"({det.reason or 'no detection'}); nothing moved")
+            size = expected_holder_px(self.cfg)
+            looked = (f", {size[0]:.0f} x {size[1]:.0f} px as holder.size_mm and the top "
+                      "camera's pixel_size_um give it" if size is not None else "")
+            raise VisionError(
+                f"holder not found in {HOLDER_LOOK_FRAMES} top-camera frames; nothing moved. "
+                "Check a frame of the top camera (alignctl analyze top FRAME): the holder "
+                f"whole in view{looked}, its face 15 DN or more (20 is safer) darker or "
+                "lighter than what surrounds it, no part of it at full scale "
+                "(docs/configure.md, the holder frame). The tracker said: "
+                f"{det.reason or 'no detection'}")
         if det.warning:
             self._warn(f"pre-check: top camera: {det.warning}")
         if self.tools.eccentricity is not None or self.tools.rim is not None:
