@@ -113,7 +113,8 @@ def pick_frame(run: dict[str, Any]) -> dict[str, Any] | None:
                 return {"hash": by_step[i], "angle_deg": float(sframes[i]["angle_deg"]),
                         "sweep": sweep, "index": i}
     last = frames[-1]
-    return {"hash": last["hash"], "angle_deg": None, "sweep": sweep, "index": None}
+    return {"hash": last["hash"], "angle_deg": None, "sweep": sweep, "index": None,
+            "label": str(last.get("label", ""))}
 
 
 def decode_png(data: bytes) -> np.ndarray:
@@ -384,6 +385,8 @@ def draw_top_view(run: dict[str, Any], image: np.ndarray | None, width: int = WI
         if pick.get("angle_deg") is not None:
             what += f", frame at {pick['angle_deg']:+.1f} deg"
         _text(view, what, (10, 22), 0.55)
+    elif pick is not None and pick.get("label"):  # a run that ended before any sweep
+        _text(view, f"the last frame saved: {pick['label']}", (10, 22), 0.55)
     return view
 
 

@@ -193,12 +193,16 @@ def _failing_tracker(ok_calls: int):
 def test_missing_holder_means_no_move_and_a_clear_reason() -> None:
     cfg = sim_config()
     rig, _ = scene_rig(cfg, 6)
-    res = run_alignment(rig, cfg, tools=standin_tools(6, track=_failing_tracker(0)))
+    rec = MemoryRecorder()
+    res = run_alignment(rig, cfg, tools=standin_tools(6, track=_failing_tracker(0)),
+                        recorder=rec)
     assert res.verdict == "fault" and res.exit_code == 3
     assert "holder not found" in res.reason and "nothing moved" in res.reason
     # what to check, with the size the tracker looked for (40 x 25 mm at 154 um/px)
     assert "alignctl analyze top" in res.reason and "260 x 162 px" in res.reason
     assert "15 DN" in res.reason
+    # and the frame looked at, for the run's picture
+    assert [label for label, _hash in rec.frames] == ["precheck-holder"]
     for role in (*TRANSLATIONS, "turntable"):
         assert commanded(rig, role) == [], role
 

@@ -187,3 +187,14 @@ def test_a_refused_holder_frame_is_drawn_with_its_targets() -> None:
     # an old record's unreadable evidence draws nothing rather than a wrong mark
     run["details"]["holder_frame_refused"] = {"centre_px": [1.0]}
     report.draw_top_view(run, frame)
+
+
+def test_a_run_without_sweeps_shows_its_last_saved_frame_named() -> None:
+    """A run that ended before any sweep (the holder not found) keeps the frame the
+    pre-check looked at: the picture draws it, captioned with its label."""
+    run = {"frames": [{"hash": "ab12", "label": "precheck-holder"}], "sweeps": []}
+    pick = report.pick_frame(run)
+    assert pick is not None and pick["hash"] == "ab12" and pick["label"] == "precheck-holder"
+    frame = np.full((720, 1280), 120, np.uint8)
+    view = report.draw_top_view(run, frame)
+    assert view[8:30, 10:300].max() == 255  # the caption, white on the frame's grey

@@ -624,11 +624,14 @@ class _Run:
         self._emit("precheck", "looking for the holder")
         for attempt in range(HOLDER_LOOK_FRAMES):
             check_abort(self.abort)
-            det = self.tools.track(grab_fresh(top, top.clock.now()))
+            seen = grab_fresh(top, top.clock.now())
+            det = self.tools.track(seen)
             if det.ok:
                 break
             log.info("holder not found in top frame %d: %s", attempt + 1, det.reason)
         else:
+            # the frame looked at, kept: the run's picture shows it
+            self.recorder.frame(seen.image, "precheck-holder")
             size = expected_holder_px(self.cfg)
             looked = (f", {size[0]:.0f} x {size[1]:.0f} px as holder.size_mm and the top "
                       "camera's pixel_size_um give it" if size is not None else "")
