@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from alignd.errors import ConfigError
+from alignd.procedures.holder_geometry import turned
 
 
 @dataclass(frozen=True)
@@ -165,8 +166,7 @@ class ReferenceOrder:
     def image_target_mm(self, target_mm: tuple[float, float]) -> tuple[float, float]:
         """``target_mm`` of the config's frame in the image's (``swapped``: the holder.
         target_mm that names the same point with holder.size_mm in the image's order)."""
-        tu, tv = target_mm
-        return {0: (tu, tv), 1: (-tv, tu), 3: (tv, -tu)}[self.turn]
+        return turned(target_mm, self.turn)
 
 
 def reference_order(corners: np.ndarray, size_mm: tuple[float, float]) -> ReferenceOrder:

@@ -55,7 +55,7 @@ from alignd.procedures.angles import (
 )
 from alignd.procedures.calibrate import configured_pixel_size_um
 from alignd.procedures.events import Phase, ProgressCallback, ProgressEvent, no_progress
-from alignd.procedures.holder_geometry import rot
+from alignd.procedures.holder_geometry import rot, turned
 from alignd.procedures.recorder import NullRecorder, RunRecorder
 from alignd.procedures.rig import AbortRequested, Rig, check_abort, validate_rig
 from alignd.procedures.runout import RunoutMap, fit_runout
@@ -664,17 +664,17 @@ class _Commission:
         that the stages are not what to change (the x and y findings alone advise
         reversing them). With x and y alone reversed, stages wired the other way read the
         same, and the two findings stand on their own."""
-        tu, tv = self.frame_target
+        other = turned(self.frame_target, 2)
         self._add(Finding(
             "top.turned_half", "warn",
             "x and y both move the holder opposite the holder frame's u and v, and the "
             "translator away from holder.target_mm: the top camera is turned 180 deg "
             "against the holder (or the holder is mounted the other way round), rather than "
             "three stages reversed. Turn the camera back, or keep it and set "
-            f"holder.target_mm: [{-tu + 0.0:g}, {-tv + 0.0:g}] (the sample's side, where the "
+            f"holder.target_mm: [{other[0]:g}, {other[1]:g}] (the sample's side, where the "
             "translator moves); x and y inverted do not stop an alignment (its calibration "
             "learns the mapping)", name="camera turned 180 deg",
-            config_fix={"holder.target_mm": [-tu + 0.0, -tv + 0.0]}))
+            config_fix={"holder.target_mm": list(other)}))
 
     def _frame_target(self, translator: tuple[float, float] | None) -> tuple[float, float]:
         """holder.target_mm in the image's holder frame. Where u and v are the other way
@@ -687,8 +687,8 @@ class _Commission:
         tu, tv = order.image_target_mm(self.cfg.holder.target_mm)
         if translator is not None and not math.isnan(translator[0]) \
                 and translator[0] * tu + translator[1] * tv < 0:
-            return -tu + 0.0, -tv + 0.0
-        return tu + 0.0, tv + 0.0
+            return turned((tu, tv), 2)
+        return tu, tv
 
     def _roles_findings(self, roles: Sequence[str]) -> None:
         """Which config role moves which way in the holder frame; swapped / inverted."""
@@ -742,12 +742,13 @@ class _Commission:
                 desc += f": not within {ROLE_CONE_DEG:g} deg of a holder axis"
             elif role == "translator" and got == (-round(exp[0]), -round(exp[1])):
                 verdict, name = "warn", "away from the target"
-                fix = {"holder.target_mm": [-tu + 0.0, -tv + 0.0]}
+                far = turned((tu, tv), 2)
+                fix = {"holder.target_mm": list(far)}
                 desc += (f": it moves away from holder.target_mm [{tu:g}, {tv:g}] (expected "
                          f"{exp_name}). Either the sample is on the holder's other side (the "
                          "top camera turned 180 deg from the one the config was written for, "
                          f"or the holder mounted the other way round: set holder.target_mm: "
-                         f"[{-tu + 0.0:g}, {-tv + 0.0:g}]), or the translator's direction is "
+                         f"[{far[0]:g}, {far[1]:g}]), or the translator's direction is "
                          "reversed: check the target on the picture")
             elif role == "translator" and got != (round(exp[0]), round(exp[1])):
                 verdict, name = "warn", "not along the sample normal"

@@ -16,6 +16,14 @@ from alignd.config import HolderConfig
 from alignd.errors import VisionError
 
 
+def turned(target_mm: tuple[float, float], quarter_turns: int) -> tuple[float, float]:
+    """A holder-frame point turned by quarter turns (u towards v), as a camera turned the
+    other way by as much numbers it (no -0.0: the values are printed in messages)."""
+    tu, tv = target_mm
+    u, v = {0: (tu, tv), 1: (-tv, tu), 2: (-tu, -tv), 3: (tv, -tu)}[quarter_turns % 4]
+    return u + 0.0, v + 0.0
+
+
 def rot(deg: float | np.ndarray) -> np.ndarray:
     """R(a) of the design notes; stacked (N, 2, 2) for an array of angles."""
     a = np.radians(deg)

@@ -24,19 +24,12 @@ import numpy as np
 from alignd.config import HolderConfig
 from alignd.errors import HolderFrameError
 from alignd.procedures.angles import SQUARE_WITHIN, ReferenceOrder
-from alignd.procedures.holder_geometry import holder_poses, rot
+from alignd.procedures.holder_geometry import holder_poses, rot, turned
 
 # a turned target within this fraction of |target_mm| of the axis is where the sample is
 NEAR_FRACTION = 0.3
 # a target nearer the holder's centre than this (mm): its sides are too close to tell
 MIN_TARGET_MM = 2.0
-
-
-def turned(target_mm: tuple[float, float], quarter_turns: int) -> tuple[float, float]:
-    """The holder-frame point turned by quarter turns (u towards v), as a camera turned
-    the other way by as much numbers it."""
-    tu, tv = target_mm
-    return {0: (tu, tv), 1: (-tv, tu), 2: (-tu, -tv), 3: (tv, -tu)}[quarter_turns % 4]
 
 
 @dataclass(frozen=True)
@@ -67,8 +60,7 @@ def candidate_offsets(points: np.ndarray, angles_deg: np.ndarray | list[float],
     for k in quarter_turns:
         t = turned(holder.target_mm, k)
         off = np.einsum("nij,nj->ni", back, poses.at(t) - c).mean(axis=0)
-        out.append(TargetCandidate((t[0] + 0.0, t[1] + 0.0), float(np.hypot(*off)) / scale,
-                                   k, off))
+        out.append(TargetCandidate(t, float(np.hypot(*off)) / scale, k, off))
     return out
 
 
