@@ -169,10 +169,17 @@ def test_soft_limits_beyond_the_controllers_travel_fail() -> None:
     assert other is not None and other.verdict == "pass"  # the Zaber axis reports no travel
 
 
-def test_a_holder_clipped_all_round_is_a_warning_that_names_the_exposure() -> None:
-    """Where the tracker says the holder's edges clip along every side, commissioning
-    warns under top.exposure (what to do, named "clipped") and still commissions: the
-    corners are measured, only less surely than their sigma says."""
+@pytest.mark.parametrize(("said", "name"), [
+    ("the holder's edges clip along all four sides; lower the exposure or the light",
+     "clipped"),
+    ("the holder was found only by a second search at a lower contrast: its sides step "
+     "less than 15 DN against what surrounds them (about 13 DN)", "faint")])
+def test_a_holder_clipped_all_round_or_faint_is_a_warning_that_names_the_exposure(
+        said: str, name: str) -> None:
+    """Where the tracker says the holder's edges clip along every side, or that it found
+    the holder only at a lower contrast, commissioning warns under top.exposure (what to
+    do, named "clipped" or "faint") and still commissions: the corners are measured, only
+    less surely than their sigma says, or with more noise."""
     import dataclasses
 
     from alignd.procedures.tools import Corners
@@ -180,7 +187,6 @@ def test_a_holder_clipped_all_round_is_a_warning_that_names_the_exposure() -> No
     cfg = sim_config()
     rig, _world = scene_rig(cfg, 2)
     base = image_order_tools(2)
-    said = "the holder's edges clip along all four sides; lower the exposure or the light"
 
     def track(frame: Frame) -> Corners:
         return dataclasses.replace(base.track(frame), warning=said)
@@ -188,7 +194,7 @@ def test_a_holder_clipped_all_round_is_a_warning_that_names_the_exposure() -> No
     rec = run_commission(rig, cfg, tools=dataclasses.replace(base, track=track),
                          abort=threading.Event())
     f = rec.finding("top.exposure")
-    assert f is not None and f.verdict == "warn" and f.name == "clipped"
+    assert f is not None and f.verdict == "warn" and f.name == name
     assert said in f.message
     assert rec.verdict == "commissioned", rec.reason
 

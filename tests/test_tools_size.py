@@ -44,7 +44,7 @@ def test_the_seeded_search_keeps_the_images_corner_order(monkeypatch: pytest.Mon
         ok: bool = True
         quality: float = 1.0
         reason: str = ""
-        clip_warning: str = ""
+        warning: str = ""
 
     seeds = []
 

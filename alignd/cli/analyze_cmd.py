@@ -234,7 +234,7 @@ def _analyze_one(kind: str, name: str, args: argparse.Namespace,
                 f"{det.corner_sigma_px:.4f} px  sample yaw "
                 + (f"{yaw.yaw_deg:+.4f} deg" if yaw.ok else f"- ({yaw.reason})")
                 + "  corners " + " ".join(f"({x:.3f}, {y:.3f})" for x, y in corners)
-                + (f"\n  warning: {det.clip_warning}" if det.clip_warning else ""))
+                + (f"\n  warning: {det.warning}" if det.warning else ""))
         return obj, line, corners
     if kind == "side":
         from alignd.vision.side import measure_tilt

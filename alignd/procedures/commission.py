@@ -278,7 +278,7 @@ class _Pose:
 
     corners: np.ndarray  # (4, 2)
     sigma_px: float  # scatter of the corners between the frames (per coordinate)
-    warning: str = ""  # the tracker's, from any of the frames (its edges clipped all round)
+    warning: str = ""  # the tracker's, from any of the frames (clipped all round, faint)
 
     @property
     def centre(self) -> np.ndarray:
@@ -482,11 +482,14 @@ class _Commission:
                 "it; turn the top camera or the holder by 10 deg or more",
                 value=roll, unit="deg", name="ambiguous"))
         # a holder clipped all round hides how far beyond full scale its step goes, and
-        # with it where its edges are: commissioning is where the exposure gets set
+        # with it where its edges are; a faint one (found only by the tracker's second,
+        # fainter search) is a few DN from not being found: commissioning is where the
+        # exposure and the light get set
+        kind = "" if not pose.warning else "clipped" if "clip" in pose.warning else "faint"
         self._add(Finding("top.exposure", "warn" if pose.warning else "pass",
                           f"top camera: {pose.warning}" if pose.warning else
                           "the holder's edges stay within the sensor's range (not clipped "
-                          "along all four sides)", name="clipped" if pose.warning else ""))
+                          "along all four sides) and step 15 DN or more", name=kind))
         assert self.tools is not None
         cam = self.rig.camera("top")
         assert cam is not None

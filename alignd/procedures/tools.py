@@ -32,7 +32,7 @@ class Corners:
     ok: bool
     quality: float = 1.0
     reason: str = ""
-    warning: str = ""  # found, but the operator should know (a holder clipped all round)
+    warning: str = ""  # found, but the operator should know (clipped all round, faint)
 
 
 @dataclass(frozen=True)
@@ -227,7 +227,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
                                       size_tolerance=SIZE_TOLERANCE, lens=lens)
         except VisionError as exc:
             return Corners(np.full((4, 2), np.nan), False, 0.0, str(exc))
-        out = dataclasses.replace(as_corners(det), warning=det.clip_warning)
+        out = dataclasses.replace(as_corners(det), warning=det.warning)
         if out.ok and lens is not None:
             # in the undistorted image, where the turntable turns the holder rigidly and
             # the stages move it in straight lines (the corners stay frame pixels in det,

@@ -148,6 +148,10 @@ _BARE_PROBE_PX = 6.0  # ... unless the image steps there as the side does, this 
 # within (see _not_askew)
 _MAX_SKEW_DEG = 2.0
 _LADDER_TRIES = 3  # the threshold ladder's boxes tried beyond max_candidates (track_holder)
+# a full search that found no holder of the expected size looks once more with this as its
+# min_contrast (DN): a holder 10-15 DN off its disc. Not the first search's: there it let
+# noisier columns into a side that was found at 15 (a side over a floor hole, rms 0.76 px)
+FAINT_CONTRAST = 10.0
 
 
 @dataclass(frozen=True)
@@ -183,6 +187,29 @@ class HolderDetection:
     # sides with a second step a few px beside them, measured again on an image without it
     # (:mod:`alignd.vision.holder_neighbours`)
     neighbour_sides: int = 0
+    # found only by the second, fainter search (:data:`FAINT_CONTRAST`), or tracked from
+    # such a detection: its sides step less than the min_contrast asked for
+    faint: bool = False
+
+    @property
+    def warning(self) -> str:
+        """What the operator should know about a holder found (clipped edges, a faint
+        holder); "" if nothing."""
+        return "; ".join(w for w in (self.clip_warning, self.faint_warning) if w)
+
+    @property
+    def faint_warning(self) -> str:
+        """Why a holder found only at :data:`FAINT_CONTRAST` is worth raising the
+        contrast of: its corners are noisier, and a few DN less and it is not found."""
+        if not (self.ok and self.faint):
+            return ""
+        steps = [abs(ln.contrast) for ln in self.lines if ln is not None]
+        step = f" (about {float(np.median(steps)):.0f} DN)" if steps else ""
+        return ("the holder was found only by a second search at a lower contrast: its "
+                f"sides step less than 15 DN against what surrounds them{step}; its corners "
+                "are noisier, and a few DN less would lose it: make it darker or lighter "
+                "than the disc (20 DN or more), or light it more (docs/configure.md, the "
+                "holder frame)")
 
     @property
     def clip_warning(self) -> str:
@@ -209,7 +236,7 @@ class HolderDetection:
                                     if math.isfinite(self.corner_sigma_px) else None),
                 "polarity": self.polarity, "size_px": list(self.size_px),
                 **({"reason": self.reason} if self.reason else {}),
-                **({"warning": self.clip_warning} if self.clip_warning else {})}
+                **({"warning": self.warning} if self.warning else {})}
 
 
 def order_corners(corners: np.ndarray, hint: np.ndarray | None = None) -> np.ndarray:
@@ -321,9 +348,11 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     pixels; the angle and the size are those of the undistorted image). ``refine``:
     "profile" refines the accepted sides by the profile fit of
     :mod:`alignd.vision.profile_fit` (about half the corner noise, about 5 ms more a
-    frame), "area" keeps the area method's crossings (the faster, noisier). Raises
-    VisionError when the image is unusable or holds no candidate; returns ``ok`` False,
-    with the reason, when no candidate passes the checks.
+    frame), "area" keeps the area method's crossings (the faster, noisier). Where a full
+    search with an expected size finds nothing, it searches once more at
+    :data:`FAINT_CONTRAST` (a holder whose sides step 10-15 DN). Raises VisionError when
+    the image is unusable or holds no candidate; returns ``ok`` False, with the reason,
+    when no candidate passes the checks.
     """
     raw = np.asarray(image)
     # tracking reads a few thousand pixels: an 8-bit frame is used as it is (no copy)
@@ -335,8 +364,12 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     # with the holder or the rig, so a tracked frame looks only where the previous one
     # found one (3-4 ms a frame otherwise)
     neighbours = True
+    # a holder found faint is tracked at the contrast it was found at
+    track_contrast = min_contrast
     if isinstance(hint, HolderDetection):
         hint_arr: np.ndarray | None = np.asarray(hint.corners_px, float)
+        if hint.faint:
+            track_contrast = min(min_contrast, FAINT_CONTRAST)
         neighbours = bool(hint.neighbour_sides)
         if len(hint.side_blur_px) == 4 and np.all(np.isfinite(hint.side_blur_px)):
             prior = (np.asarray(hint.corners_px, float), np.asarray(hint.side_blur_px),
@@ -356,7 +389,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         # full search
         try:
             seed = order_corners(hint_arr)
-            det = _refine(gray, seed, polarity, expected_size_px, hint_arr, min_contrast,
+            det = _refine(gray, seed, polarity, expected_size_px, hint_arr, track_contrast,
                           max_rms_px, passes, lens, size_tolerance, refine == "profile",
                           seeded=True, prior=prior, neighbours=neighbours)
             if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px) - seed,
@@ -366,7 +399,7 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
                 # edge (a sample strip along a side), skewing a side by up to 2 px at a
                 # corner; measure again around what was found
                 again = _refine(gray, order_corners(det.corners_px), polarity,
-                                expected_size_px, hint_arr, min_contrast, max_rms_px, passes,
+                                expected_size_px, hint_arr, track_contrast, max_rms_px, passes,
                                 lens, size_tolerance, refine == "profile",
                                 neighbours=neighbours)
                 if again.ok:
@@ -376,10 +409,10 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
                 # (a holder within a pixel of the previous detection's corners has its
                 # sides on the same edges, which that detection's check cleared)
                 det = _looked_again(gray, det, polarity, expected_size_px, hint_arr,
-                                    min_contrast, max_rms_px, passes, lens, size_tolerance,
+                                    track_contrast, max_rms_px, passes, lens, size_tolerance,
                                     refine == "profile")
             if det.ok:
-                return det
+                return replace(det, faint=True) if track_contrast < min_contrast else det
             reasons.append(f"at the previous corners: {det.reason}")
         except VisionError as exc:
             reasons.append(f"at the previous corners: {exc}")
@@ -388,6 +421,42 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     if gray.dtype == np.uint8:  # the 8-bit frame (or its despeckled copy): the search
         gray = as_gray(gray, "top image")  # wants floats (any other was converted above)
     check_usable(gray, min_contrast, "top image")
+    search = partial(_full_search, gray, expected_size_px, hint_arr, polarity, max_rms_px,
+                     passes, lens, size_tolerance, max_candidates, refine == "profile")
+    first: VisionError | None = None
+    try:
+        det = search(min_contrast, reasons)
+        if det.ok:
+            return det
+    except VisionError as exc:
+        if expected_size_px is None or min_contrast <= FAINT_CONTRAST:
+            raise
+        first = exc
+    if expected_size_px is not None and min_contrast > FAINT_CONTRAST:
+        # a holder of its size too faint for the first search (a grey holder on a grey
+        # disc, 10-15 DN apart): once more at a lower contrast, only where the first found
+        # nothing, so that what it finds is never changed
+        try:
+            faint = search(FAINT_CONTRAST, [])
+        except VisionError:
+            faint = None
+        if faint is not None and faint.ok:
+            log.info("top image: the holder found only at a contrast of %g DN (its sides "
+                     "step less than %g DN)", FAINT_CONTRAST, min_contrast)
+            return replace(faint, faint=True)
+    if first is not None:
+        raise first
+    return det
+
+
+def _full_search(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
+                 hint_arr: np.ndarray | None, polarity: str | None, max_rms_px: float,
+                 passes: int, lens: Lens | None, size_tolerance: float, max_candidates: int,
+                 profile: bool, min_contrast: float, reasons: list[str]) -> HolderDetection:
+    """The search of a whole frame (:func:`track_holder` without a hint, or where the
+    hint failed): the candidates refined in turn, the first that passes returned; else
+    not ok with every candidate's reason (appended to ``reasons``), or VisionError where
+    there was no candidate at all."""
     tried: list[np.ndarray] = []  # the boxes refined, their corners ordered
     rough: list[np.ndarray] = []  # boxes refused for a side's scatter alone (second pass)
     last: HolderDetection | None = None
@@ -395,9 +464,9 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     def measure(box: np.ndarray, rms_px: float) -> HolderDetection:
         """``box`` refined and checked (VisionError where its sides cannot be located)."""
         det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
-                      min_contrast, rms_px, passes, lens, size_tolerance, refine == "profile")
+                      min_contrast, rms_px, passes, lens, size_tolerance, profile)
         return _looked_again(gray, det, polarity, expected_size_px, hint_arr, min_contrast,
-                             rms_px, passes, lens, size_tolerance, refine == "profile")
+                             rms_px, passes, lens, size_tolerance, profile)
 
     def later() -> Iterator[tuple[np.ndarray, float]]:
         """Once every box has failed: the rough ones allowing more scatter, then the boxes
