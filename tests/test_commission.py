@@ -169,13 +169,13 @@ def test_soft_limits_beyond_the_controllers_travel_fail() -> None:
     assert other is not None and other.verdict == "pass"  # the Zaber axis reports no travel
 
 
-@pytest.mark.parametrize(("said", "name"), [
+@pytest.mark.parametrize(("said", "faint", "name"), [
     ("the holder's edges clip along all four sides; lower the exposure or the light",
-     "clipped"),
+     False, "clipped"),
     ("the holder was found only by a second search at a lower contrast: its sides step "
-     "less than 15 DN against what surrounds them (about 13 DN)", "faint")])
+     "less than 15 DN against what surrounds them (about 13 DN)", True, "faint")])
 def test_a_holder_clipped_all_round_or_faint_is_a_warning_that_names_the_exposure(
-        said: str, name: str) -> None:
+        said: str, faint: bool, name: str) -> None:
     """Where the tracker says the holder's edges clip along every side, or that it found
     the holder only at a lower contrast, commissioning warns under top.exposure (what to
     do, named "clipped" or "faint") and still commissions: the corners are measured, only
@@ -189,7 +189,7 @@ def test_a_holder_clipped_all_round_or_faint_is_a_warning_that_names_the_exposur
     base = image_order_tools(2)
 
     def track(frame: Frame) -> Corners:
-        return dataclasses.replace(base.track(frame), warning=said)
+        return dataclasses.replace(base.track(frame), warning=said, faint=faint)
 
     rec = run_commission(rig, cfg, tools=dataclasses.replace(base, track=track),
                          abort=threading.Event())

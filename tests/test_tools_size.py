@@ -45,6 +45,7 @@ def test_the_seeded_search_keeps_the_images_corner_order(monkeypatch: pytest.Mon
         quality: float = 1.0
         reason: str = ""
         warning: str = ""
+        faint: bool = False
 
     seeds = []
 

@@ -81,3 +81,16 @@ def test_a_holder_too_faint_even_for_the_second_search_is_refused_with_the_first
     det = track_holder(img, expected_size_px=expected, size_tolerance=SIZE_TOLERANCE)
     assert not det.ok
     assert det.reason.startswith("no holder found: candidate at")
+
+
+def test_the_procedures_tools_carry_the_faint_flag_and_its_warning() -> None:
+    """What the pre-check, the sweeps and commissioning read (procedures.tools.Corners)."""
+    from alignd.procedures.tools import default_tools
+    from drivers.camera import Frame
+
+    img, nxt, _ = _frames(177.0, n=1)[0]
+    tools = default_tools(load_config(CONFIG))
+    for k, frame in enumerate((img, nxt)):  # a full search, then tracked
+        c = tools.track(Frame(frame, 0.0, k + 1))
+        assert c.ok and c.faint, c.reason
+        assert "lower contrast" in c.warning

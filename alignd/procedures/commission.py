@@ -279,6 +279,7 @@ class _Pose:
     corners: np.ndarray  # (4, 2)
     sigma_px: float  # scatter of the corners between the frames (per coordinate)
     warning: str = ""  # the tracker's, from any of the frames (clipped all round, faint)
+    faint: bool = False  # any frame's holder found only by the tracker's fainter search
 
     @property
     def centre(self) -> np.ndarray:
@@ -336,7 +337,7 @@ class _Commission:
         assert cam is not None and self.tools is not None
         settled = cam.clock.now()
         found: list[np.ndarray] = []
-        warning = ""
+        warning, faint = "", False
         for j in range(frames):
             frame = grab_fresh(cam, settled)
             self.n_frames += 1
@@ -346,11 +347,12 @@ class _Commission:
                 found.append(nearest_order(det.corners_px, found[0]) if found
                              else det.corners_px)
                 warning = warning or det.warning
+                faint = faint or det.faint
         if not found:
             return None
         arr = np.asarray(found)
         sig = float(arr.std(axis=0, ddof=1).mean()) if len(arr) > 1 else float("nan")
-        return _Pose(arr.mean(axis=0), sig, warning)
+        return _Pose(arr.mean(axis=0), sig, warning, faint)
 
     def _need(self, label: str) -> _Pose:
         pose = self._look(label)
@@ -485,7 +487,7 @@ class _Commission:
         # with it where its edges are; a faint one (found only by the tracker's second,
         # fainter search) is a few DN from not being found: commissioning is where the
         # exposure and the light get set
-        kind = "" if not pose.warning else "clipped" if "clip" in pose.warning else "faint"
+        kind = "" if not pose.warning else "faint" if pose.faint else "clipped"
         self._add(Finding("top.exposure", "warn" if pose.warning else "pass",
                           f"top camera: {pose.warning}" if pose.warning else
                           "the holder's edges stay within the sensor's range (not clipped "

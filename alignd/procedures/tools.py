@@ -33,6 +33,7 @@ class Corners:
     quality: float = 1.0
     reason: str = ""
     warning: str = ""  # found, but the operator should know (clipped all round, faint)
+    faint: bool = False  # found only by the tracker's fainter second search (its warning says)
 
 
 @dataclass(frozen=True)
@@ -227,7 +228,7 @@ def default_tools(cfg: AligndConfig | None = None) -> Tools:
                                       size_tolerance=SIZE_TOLERANCE, lens=lens)
         except VisionError as exc:
             return Corners(np.full((4, 2), np.nan), False, 0.0, str(exc))
-        out = dataclasses.replace(as_corners(det), warning=det.warning)
+        out = dataclasses.replace(as_corners(det), warning=det.warning, faint=det.faint)
         if out.ok and lens is not None:
             # in the undistorted image, where the turntable turns the holder rigidly and
             # the stages move it in straight lines (the corners stay frame pixels in det,
