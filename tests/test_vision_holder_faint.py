@@ -94,3 +94,23 @@ def test_the_procedures_tools_carry_the_faint_flag_and_its_warning() -> None:
         c = tools.track(Frame(frame, 0.0, k + 1))
         assert c.ok and c.faint, c.reason
         assert "lower contrast" in c.warning
+
+
+def test_the_second_search_keeps_only_a_faint_box() -> None:
+    """A randomised corpus frame (bench seed 2124, #99: a dark holder with a sample strip
+    and a label) looked for at 0.75 of its holder's size: the first search finds nothing
+    of that size; the second found a box of one of the holder's sides and the label's
+    edges, sides stepping about 53 DN, and returned it. A box that steps as much as the
+    first search asks is not faint: the first search's refusal stands."""
+    from drivers.sim.scenes import TOP_CATEGORIES, random_top_scene
+
+    rng = np.random.default_rng(2124)
+    for i in range(100):
+        sc = random_top_scene(rng, TOP_CATEGORIES[i % len(TOP_CATEGORIES)], (1280, 720))
+    long_px, short_px = sc.expected_size_px
+    det = track_holder(sc.image, expected_size_px=(0.75 * long_px, 0.75 * short_px))
+    assert not det.ok
+    assert det.reason.startswith("no holder found")
+    # at its own size, the holder (found by the first search)
+    right = track_holder(sc.image, expected_size_px=sc.expected_size_px)
+    assert right.ok and not right.faint

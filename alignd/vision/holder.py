@@ -152,6 +152,11 @@ _LADDER_TRIES = 3  # the threshold ladder's boxes tried beyond max_candidates (t
 # min_contrast (DN): a holder 10-15 DN off its disc. Not the first search's: there it let
 # noisier columns into a side that was found at 15 (a side over a floor hole, rms 0.76 px)
 FAINT_CONTRAST = 10.0
+# ... and keeps what it finds only where the sides' median step is under this many times
+# the first search's min_contrast (20 DN): a faint holder (13-18 DN beside a sample's
+# 60 DN side: 13-19 DN), not a box the first search refused for something else (a label's
+# edges with one of the holder's sides, looked for at 0.75 of its size: 53 DN)
+FAINT_STEP_RATIO = 4.0 / 3.0
 
 
 @dataclass(frozen=True)
@@ -203,8 +208,8 @@ class HolderDetection:
         contrast of: its corners are noisier, and a few DN less and it is not found."""
         if not (self.ok and self.faint):
             return ""
-        steps = [abs(ln.contrast) for ln in self.lines if ln is not None]
-        step = f" (about {float(np.median(steps)):.0f} DN)" if steps else ""
+        median = _median_step(self)
+        step = f" (about {median:.0f} DN)" if math.isfinite(median) else ""
         return ("the holder was found only by a second search at a lower contrast: its "
                 f"sides step less than 15 DN against what surrounds them{step}; its corners "
                 "are noisier, and a few DN less would lose it: make it darker or lighter "
@@ -441,9 +446,17 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
         except VisionError:
             faint = None
         if faint is not None and faint.ok:
-            log.info("top image: the holder found only at a contrast of %g DN (its sides "
-                     "step less than %g DN)", FAINT_CONTRAST, min_contrast)
-            return replace(faint, faint=True)
+            step = _median_step(faint)
+            if step < FAINT_STEP_RATIO * min_contrast:
+                log.info("top image: the holder found only at a contrast of %g DN (its sides "
+                         "step %.0f DN)", FAINT_CONTRAST, step)
+                return replace(faint, faint=True)
+            # a box whose sides step as much as the first search asks was refused there
+            # for something else (a label's edges with a side of the holder, where the
+            # holder is not of the size looked for); that refusal stands
+            log.info("top image: the second search's box at (%.0f, %.0f) steps %.0f DN, "
+                     "not faint: refused as the first search refused it",
+                     *faint.center_px, step)
     if first is not None:
         raise first
     return det
@@ -530,6 +543,12 @@ def _full_search(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
                            center_px=np.full(2, np.nan), angle_deg=math.nan, quality=0.0,
                            corner_sigma_px=math.nan, polarity=last.polarity,
                            size_px=(math.nan, math.nan), reason=why)
+
+
+def _median_step(det: HolderDetection) -> float:
+    """The median of the found sides' steps (DN, unsigned)."""
+    steps = [abs(ln.contrast) for ln in det.lines if ln is not None]
+    return float(np.median(steps)) if steps else math.inf
 
 
 def _only_rough(det: HolderDetection, max_rms_px: float) -> bool:
