@@ -209,12 +209,12 @@ class HolderDetection:
         if not (self.ok and self.faint):
             return ""
         median = _median_step(self)
-        step = f" (about {median:.0f} DN)" if math.isfinite(median) else ""
+        step = f" (their median step is about {median:.0f} DN)" if math.isfinite(median) else ""
         return ("the holder was found only by a second search at a lower contrast: its "
-                f"sides step less than 15 DN against what surrounds them{step}; its corners "
-                "are noisier, and a few DN less would lose it: make it darker or lighter "
-                "than the disc (20 DN or more), or light it more (docs/configure.md, the "
-                "holder frame)")
+                f"sides step less than 15 DN against what surrounds them, along part of them "
+                f"at least{step}; its corners are noisier, and a few DN less would lose it: "
+                "make it darker or lighter than the disc (20 DN or more), or light it more "
+                "(docs/configure.md, the holder frame)")
 
     @property
     def clip_warning(self) -> str:
