@@ -149,8 +149,9 @@ _BARE_PROBE_PX = 6.0  # ... unless the image steps there as the side does, this 
 _MAX_SKEW_DEG = 2.0
 _LADDER_TRIES = 3  # the threshold ladder's boxes tried beyond max_candidates (track_holder)
 # a full search that found no holder of the expected size looks once more with this as its
-# min_contrast (DN): a holder 10-15 DN off its disc. Not the first search's: there it let
-# noisier columns into a side that was found at 15 (a side over a floor hole, rms 0.76 px)
+# min_contrast (DN): a holder whose sides step less than 15 DN along part of them (12-18 DN
+# off its disc under uneven light). Not the first search's: there it let noisier columns
+# into a side that was found at 15 (a side over a floor hole, rms 0.76 px)
 FAINT_CONTRAST = 10.0
 # ... and keeps what it finds only where the sides' median step is under this many times
 # the first search's min_contrast (20 DN): a faint holder (13-18 DN beside a sample's
@@ -355,7 +356,8 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     :mod:`alignd.vision.profile_fit` (about half the corner noise, about 5 ms more a
     frame), "area" keeps the area method's crossings (the faster, noisier). Where a full
     search with an expected size finds nothing, it searches once more at
-    :data:`FAINT_CONTRAST` (a holder whose sides step 10-15 DN). Raises VisionError when
+    :data:`FAINT_CONTRAST`, for a holder whose sides step less than ``min_contrast`` along
+    part of them, and keeps only such a faint one (``faint``). Raises VisionError when
     the image is unusable or holds no candidate; returns ``ok`` False, with the reason,
     when no candidate passes the checks.
     """
