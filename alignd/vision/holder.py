@@ -430,35 +430,34 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     check_usable(gray, min_contrast, "top image")
     search = partial(_full_search, gray, expected_size_px, hint_arr, polarity, max_rms_px,
                      passes, lens, size_tolerance, max_candidates, refine == "profile")
+    # a holder of its size too faint for the first search (a grey holder on a grey disc,
+    # under 15 DN along part of its sides): once more at a lower contrast, only where the
+    # first found nothing, so that what it finds is never changed
+    second = expected_size_px is not None and min_contrast > FAINT_CONTRAST
     first: VisionError | None = None
     try:
         det = search(min_contrast, reasons)
-        if det.ok:
+        if det.ok or not second:
             return det
     except VisionError as exc:
-        if expected_size_px is None or min_contrast <= FAINT_CONTRAST:
+        if not second:
             raise
         first = exc
-    if expected_size_px is not None and min_contrast > FAINT_CONTRAST:
-        # a holder of its size too faint for the first search (a grey holder on a grey
-        # disc, 10-15 DN apart): once more at a lower contrast, only where the first found
-        # nothing, so that what it finds is never changed
-        try:
-            faint = search(FAINT_CONTRAST, [])
-        except VisionError:
-            faint = None
-        if faint is not None and faint.ok:
-            step = _median_step(faint)
-            if step < FAINT_STEP_RATIO * min_contrast:
-                log.info("top image: the holder found only at a contrast of %g DN (its sides "
-                         "step %.0f DN)", FAINT_CONTRAST, step)
-                return replace(faint, faint=True)
-            # a box whose sides step as much as the first search asks was refused there
-            # for something else (a label's edges with a side of the holder, where the
-            # holder is not of the size looked for); that refusal stands
-            log.info("top image: the second search's box at (%.0f, %.0f) steps %.0f DN, "
-                     "not faint: refused as the first search refused it",
-                     *faint.center_px, step)
+    try:
+        faint: HolderDetection | None = search(FAINT_CONTRAST, [])
+    except VisionError:
+        faint = None
+    if faint is not None and faint.ok:
+        step = _median_step(faint)
+        if step < FAINT_STEP_RATIO * min_contrast:
+            log.info("top image: the holder found only at a contrast of %g DN (its sides "
+                     "step %.0f DN)", FAINT_CONTRAST, step)
+            return replace(faint, faint=True)
+        # a box whose sides step as much as the first search asks was refused there for
+        # something else (a label's edges with a side of the holder, where the holder is
+        # not of the size looked for); that refusal stands
+        log.info("top image: the second search's box at (%.0f, %.0f) steps %.0f DN, not "
+                 "faint: refused as the first search refused it", *faint.center_px, step)
     if first is not None:
         raise first
     return det
