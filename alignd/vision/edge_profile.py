@@ -27,11 +27,23 @@ from scipy.special import ndtr
 
 from alignd.vision.edges import Line
 
-__all__ = ["ProfileFit", "Spread", "fit_vertical_edge", "solve_rows", "step_basis"]
+__all__ = ["Highlight", "ProfileFit", "Spread", "fit_vertical_edge", "line_basis", "solve_rows",
+           "step_basis", "window_profile"]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 # one JPEG block row: the unit of the per-band error terms (side.py merges them further)
 BAND_ROWS = 8
+
+
+@dataclass(frozen=True)
+class Highlight:
+    """A bright or dark line along an edge, fitted with it: a polished rod's highlight
+    beside its silhouette's edge. Left out of the model it pulled the edge's angle
+    0.15 deg. Its offset from the edge (px, + toward +x), width (px) and median strength."""
+
+    offset_px: float
+    width_px: float
+    strength: float  # DN px: its profile's integral across it
 
 
 @dataclass(frozen=True)
@@ -54,6 +66,7 @@ class ProfileFit:
     # (see :func:`alignd.vision.side.measure_tilt_frames`)
     bands: np.ndarray | None = None
     band_angle_deg: np.ndarray | None = None
+    highlight: Highlight | None = None  # a line fitted along the edge, if any
 
     @property
     def angle_deg(self) -> float:
@@ -110,37 +123,53 @@ def step_basis(u: np.ndarray, s: float, spread: Spread = "optics"
 
 
 def solve_rows(B: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Per-row least squares: coefficients (N, 4, K) of Y (N, W, K) on B (N, W, 4)
+    """Per-row least squares: coefficients (N, C, K) of Y (N, W, K) on B (N, W, C)
     (batched matrix products: einsum's generic loop was most of the side camera's time)."""
     Bt = B.transpose(0, 2, 1)
-    return np.linalg.solve(Bt @ B + 1e-9 * np.eye(4), Bt @ Y)
+    return np.linalg.solve(Bt @ B + 1e-9 * np.eye(B.shape[2]), Bt @ Y)
 
 
 class _OffTheWindows(Exception):
     """The edge fit left its windows: there is no step there to fit."""
 
 
+def line_basis(u: np.ndarray, d: float | np.ndarray, w: float | np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A line along the edge at offset ``d`` from it, a Gaussian of width ``w`` integrated
+    over each pixel: its profile G at offset u from the edge, dG/du and dG/dw
+    (dG/dd = -dG/du)."""
+    tp, tm = (u - d + 0.5) / w, (u - d - 0.5) / w
+    pp, pm = _INV_SQRT_2PI * np.exp(-0.5 * tp * tp), _INV_SQRT_2PI * np.exp(-0.5 * tm * tm)
+    return ndtr(tp) - ndtr(tm), (pp - pm) / w, -(tp * pp - tm * pm) / w
+
+
 def _gauss_newton(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray,
                   spread: Spread, iterations: int = 12
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Variable projection (Kaufman's Jacobian) for (a, b, s); returns p, residuals (N, W),
-    the per-row coefficients (N, 4) and J^T J. Raises _OffTheWindows when the line leaves
-    a row's window."""
-    JtJ = np.eye(3)
+    """Variable projection (Kaufman's Jacobian) for (a, b, s), and (d, w) of a line along
+    the edge where ``p`` has them; returns p, residuals (N, W), the per-row coefficients
+    (N, 4 or 5) and J^T J. Raises _OffTheWindows when the line leaves a row's window."""
+    k = p.size
+    JtJ = np.eye(k)
     r = np.zeros_like(P)
-    c = np.zeros((P.shape[0], 4))
+    c = np.zeros((P.shape[0], 4 if k == 3 else 5))
+    half = cols.shape[1] / 2
     for it in range(iterations + 1):  # the last pass only evaluates J at the solution
         p, r, c, D = _jacobian_at(P, cols, yc, p, spread)
-        J = D.reshape(-1, 3)  # r = P - model: dr/dp = -D, the step solves D dp = r
+        J = D.reshape(-1, k)  # r = P - model: dr/dp = -D, the step solves D dp = r
         JtJ = J.T @ J
         if it == iterations:
             break
-        step = np.linalg.solve(JtJ + 1e-12 * np.eye(3), J.T @ r.ravel())
+        step = np.linalg.solve(JtJ + 1e-12 * np.eye(k), J.T @ r.ravel())
         p = p + step
         p[2] = float(np.clip(p[2], 0.2, 5.0))
-        if not np.all(np.abs(p[0] + p[1] * yc - cols.mean(axis=1)) <= cols.shape[1] / 2):
+        if k == 5:  # the line stays inside the window, no sharper than a pixel's blur
+            p[3] = float(np.clip(p[3], -half, half))
+            p[4] = float(np.clip(p[4], 0.3, 3.0))
+        if not np.all(np.abs(p[0] + p[1] * yc - cols.mean(axis=1)) <= half):
             raise _OffTheWindows  # (NaN fails the test too)
-        if abs(step[0]) < 1e-5 and abs(step[1]) < 1e-8 and abs(step[2]) < 1e-4:
+        if abs(step[0]) < 1e-5 and abs(step[1]) < 1e-8 and abs(step[2]) < 1e-4 and (
+                k == 3 or abs(step[3]) < 1e-4):
             break
     return p, r, c, JtJ
 
@@ -167,17 +196,182 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     its windows (a profile that is no step there: a shiny pole's highlight beside its
     edge drove the line thousands of pixels off, until the per-row solve was singular).
     """
-    try:
-        return _fit_vertical_edge(gray, a0, b0, y_mid, rows, half_width, blur0, x_limits,
-                                  min_rows, spread, clip_levels)
-    except _OffTheWindows:
+    def fitted(start: _LineStart | None) -> ProfileFit | None:
+        try:
+            return _fit_vertical_edge(gray, a0, b0, y_mid, rows, half_width, blur0, x_limits,
+                                      min_rows, spread, clip_levels, start)
+        except _OffTheWindows:
+            return None
+
+    plain = fitted(None)
+    if plain is not None and (
+            plain.rms_dn <= LINE_TRIGGER * _row_noise(gray, a0, b0, y_mid, rows, half_width)
+            or _bump(gray, plain, half_width) <= LINE_BUMP * abs(_rise(
+                gray, a0, b0, y_mid, rows, half_width, x_limits))):
+        return plain
+    best = plain
+    starts, rise = _line_starts(gray, a0, b0, y_mid, rows, half_width, x_limits)
+    for start in starts:
+        f = fitted(start)
+        # the step rises or falls as the window does from end to end: a step the other way
+        # with a steep slope beside it fitted a narrow rod's edge and highlight as well
+        if f is None or f.contrast * rise <= 0 or f.highlight is None or (
+                abs(f.highlight.offset_px) < LINE_MIN_OFFSET_PX):
+            continue
+        if best is None or f.rms_dn < best.rms_dn:
+            best = f
+    if best is None or best.highlight is None or (
+            plain is not None and best.rms_dn > LINE_GAIN * plain.rms_dn):
+        return plain
+    return best
+
+
+# a line along the edge (a highlight on a polished rod) is looked for where the plain
+# step's residual exceeds this many times the frame's noise beside the edge, and kept where
+# it brings the residual under LINE_GAIN of the plain step's
+LINE_TRIGGER = 2.0
+LINE_GAIN = 0.5
+# and where the plain step's mean residual, beside the edge, peaks over this share of the
+# step across the window (a blur the model draws differently leaves its residual at the
+# edge itself; the plain step's own contrast takes in part of the line)
+LINE_BUMP = 0.05
+# nor nearer the edge than this (px): there it reshapes the edge's blur instead (a line
+# 0.6 px from a sample's edge moved the edge 1 px)
+LINE_MIN_OFFSET_PX = 1.5
+
+
+@dataclass(frozen=True)
+class _LineStart:
+    """Where a fit of the edge with a line along it starts: the edge's shift from the
+    start line (px), the line's offset from the edge and width, the blur (px)."""
+
+    shift: float
+    offset: float
+    width: float
+    blur: float
+
+
+def window_profile(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.ndarray,
+                   half_width: int, x_limits: tuple[int, int] | None = None
+                   ) -> tuple[np.ndarray, float] | None:
+    """The mean over ``rows`` of the windows a fit of the edge near x = a0 + b0 (y - y_mid)
+    reads, and the line's mean offset from the windows' centre pixels (px); None with
+    fewer than 8 rows inside the image (``x_limits``)."""
+    h, w = gray.shape
+    lo, hi = x_limits if x_limits is not None else (0, w)
+    rows = np.asarray(rows, int)
+    rows = rows[(rows >= 0) & (rows < h)]
+    start = np.round(a0 + b0 * (rows - y_mid)).astype(int) - half_width
+    m = 2 * half_width + 1
+    ok = (start >= lo) & (start + m <= hi)
+    if ok.sum() < 8:
         return None
+    prof = gray[rows[ok, None], start[ok, None] + np.arange(m)].astype(np.float64).mean(axis=0)
+    return prof, float(np.mean(a0 + b0 * (rows[ok] - y_mid) - (start[ok] + half_width)))
+
+
+def _line_starts(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.ndarray,
+                 half_width: int, x_limits: tuple[int, int] | None, keep: int = 3
+                 ) -> tuple[list[_LineStart], float]:
+    """The ``keep`` best starts, with edges a pixel apart or more, for a step with a line
+    beside it, on a grid over the windows' mean profile, and how much that profile rises
+    from its first pixel to its last (DN). The fit from a fixed start near the line's flank
+    settled on the flank (a step the wrong way with a dark line beside it); the grid sees
+    every arrangement of the step and the line at once."""
+    got = window_profile(gray, a0, b0, y_mid, rows, half_width, x_limits)
+    if got is None:
+        return [], 0.0
+    prof, frac = got
+    m = prof.size
+    k = np.arange(m) - half_width - frac
+    grid = [(t, d, wd, sb)
+            for t in np.arange(-half_width + 1.5, half_width - 1.5 + 1e-9, 0.5)
+            for d in np.arange(-half_width + 0.5, half_width - 0.5 + 1e-9, 0.5)
+            if abs(d) >= 1.0 and abs(t + d) <= half_width
+            for wd in (0.7, 1.3, 2.2) for sb in (0.7, 1.4)]
+    rise = float(prof[-1] - prof[0])
+    if not grid:
+        return [], rise
+    g = np.array(grid)
+    u = k[None, :] - g[:, 0:1]  # (G, m): offset from the step
+    rss = np.empty(len(grid))
+    for sb in (0.7, 1.4):
+        sel = g[:, 3] == sb
+        G = line_basis(u[sel], g[sel, 1:2], g[sel, 2:3])[0]
+        B = np.concatenate([step_basis(u[sel], sb)[3], G[..., None]], axis=2)
+        coef = solve_rows(B, np.broadcast_to(prof, (B.shape[0], m))[..., None])
+        rss[sel] = np.sum(((B @ coef)[..., 0] - prof) ** 2, axis=1)
+    out: list[_LineStart] = []
+    for j in np.argsort(rss):
+        t, d, wd, sb = grid[int(j)]
+        if all(abs(t - o.shift) >= 1.0 for o in out):
+            out.append(_LineStart(float(t), float(d), float(wd), float(sb)))
+        if len(out) == keep:
+            break
+    return out, rise
+
+
+def _rise(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.ndarray,
+          half_width: int, x_limits: tuple[int, int] | None) -> float:
+    """How much the windows' mean profile rises from its first pixel to its last (DN)."""
+    got = window_profile(gray, a0, b0, y_mid, rows, half_width, x_limits)
+    return 0.0 if got is None else float(got[0][-1] - got[0][0])
+
+
+def _bump(gray: np.ndarray, fit: ProfileFit, half_width: int) -> float:
+    """The largest mean residual (DN, absolute) of ``fit`` over its rows, in half-pixel
+    bins of the offset from the edge LINE_MIN_OFFSET_PX or more away: what a line beside
+    the edge leaves."""
+    yc = (fit.rows - fit.y_mid).astype(np.float64)
+    centre = fit.a + fit.b * yc
+    cols = np.round(centre).astype(int)[:, None] + np.arange(-half_width, half_width + 1)
+    cols = np.clip(cols, 0, gray.shape[1] - 1)
+    P = gray[fit.rows[:, None], cols].astype(np.float64)
+    u = cols - centre[:, None]
+    B = step_basis(u, fit.blur_px, fit.spread)[3]
+    r = P - (B @ solve_rows(B, P[..., None]))[..., 0]
+    side = np.abs(u) >= LINE_MIN_OFFSET_PX
+    if not side.any():
+        return 0.0
+    k = np.round(u[side] * 2).astype(int)
+    k -= k.min()
+    n = np.bincount(k)
+    mean = np.bincount(k, r[side]) / np.maximum(n, 1)
+    return float(np.max(np.abs(mean[n >= 8]), initial=0.0))
+
+
+def _row_noise(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.ndarray,
+               half_width: int) -> float:
+    """The frame's noise in the edge's windows (DN), from differences between adjacent
+    rows: a near-vertical edge barely moves from one row to the next, the noise does."""
+    h, w = gray.shape
+    rows = np.asarray(rows, int)
+    rows = rows[(rows >= 0) & (rows < h - 1)]
+    x = np.clip(np.round(a0 + b0 * (rows - y_mid)).astype(int), half_width, w - 1 - half_width)
+    cols = x[:, None] + np.arange(-half_width, half_width + 1)[None, :]
+    d = gray[rows[:, None] + 1, cols].astype(np.float64) - gray[rows[:, None], cols]
+    if d.size == 0:
+        return 0.0
+    # the mean absolute deviation, not the median's: integer levels make the median's
+    # a whole number of DN (1 DN read 1.05 for 1.5 DN of noise)
+    dev = np.abs(d - np.median(d))
+    dev = dev[dev <= 4.0 * max(float(np.mean(dev)), 0.5)]  # not the rows an edge crosses
+    return float(np.mean(dev)) * math.sqrt(math.pi / 2) / math.sqrt(2.0)
+
+
+def _basis(u: np.ndarray, p: np.ndarray, spread: Spread) -> np.ndarray:
+    """The per-row basis at offset u for the nonlinear parameters ``p`` (a, b, s[, d, w])."""
+    B = step_basis(u, p[2], spread)[3]
+    if p.size == 5:
+        B = np.concatenate([B, line_basis(u, p[3], p[4])[0][..., None]], axis=2)
+    return B
 
 
 def _fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
                        rows: np.ndarray, half_width: int, blur0: float,
                        x_limits: tuple[int, int] | None, min_rows: int, spread: Spread,
-                       clip_levels: tuple[float, float] | None) -> ProfileFit | None:
+                       clip_levels: tuple[float, float] | None,
+                       line_start: _LineStart | None = None) -> ProfileFit | None:
     h, w = gray.shape
     lo, hi = x_limits if x_limits is not None else (0, w)
     rows = np.asarray(rows, int)
@@ -196,13 +390,14 @@ def _fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
         unclipped = ((clip_levels[0] + 0.5 < P) & (clip_levels[1] - 0.5 > P)).all(axis=1)
         if unclipped.sum() >= min_rows:
             use = unclipped
-    x = np.array([a0, b0, blur0])
+    ls = line_start
+    x = np.array([a0, b0, blur0] if ls is None else
+                 [a0 + ls.shift, b0, ls.blur, ls.offset, ls.width])
     r_all = np.zeros_like(P)
     coef = np.zeros((rows.size, 4))
     for _ in range(4):
         x, _r, _c, _JtJ = _gauss_newton(P[use], cols[use], yc[use], x, spread)
-        u_all = cols - (x[0] + x[1] * yc)[:, None]
-        _F, _dFu, _dFs, B = step_basis(u_all, x[2], spread)
+        B = _basis(cols - (x[0] + x[1] * yc)[:, None], x, spread)
         coef = solve_rows(B, P[..., None])[..., 0]
         model = (B @ coef[..., None])[..., 0]
         r_all = P - model
@@ -226,7 +421,7 @@ def _fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
         x, _r, _c, _JtJ = _gauss_newton(P[use], cols[use], yc[use], x, spread)
     x, r, _c, J = _jacobian_at(P[use], cols[use], yc[use], x, spread)
     n_use = int(use.sum())
-    dof = max(n_use * m - 3 - 4 * n_use, 1)
+    dof = max(n_use * m - x.size - _c.shape[1] * n_use, 1)
     s2 = float(np.sum(r ** 2)) / dof
     cov = _cluster_cov(J, r, rows[use] // 8, n_use * m, dof)[:2, :2]
     bands, infl = _band_influence(J, r, rows[use] // BAND_ROWS, n_use * m, dof)
@@ -234,32 +429,44 @@ def _fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     return ProfileFit(a=float(x[0]), b=float(x[1]), y_mid=y_mid, cov_ab=cov,
                       blur_px=float(x[2]), rms_dn=math.sqrt(s2), rows=rows[use],
                       contrast=float(np.median(coef[use, 2])), spread=spread,
-                      bands=bands, band_angle_deg=band_deg)
+                      bands=bands, band_angle_deg=band_deg,
+                      highlight=None if x.size == 3 else Highlight(
+                          float(x[3]), float(x[4]), float(np.median(coef[use, 4]))))
 
 
 def _band_influence(D: np.ndarray, r: np.ndarray, cluster: np.ndarray, n_obs: int,
                     dof: int) -> tuple[np.ndarray, np.ndarray]:
     """Each cluster's term (J^T J)^-1 s_g sqrt(n / dof) of the parameters (a, b, s): the
     sandwich of :func:`_cluster_cov` is the sum of their outer products."""
-    J = D.reshape(-1, 3)
-    JtJi = np.linalg.inv(J.T @ J + 1e-12 * np.eye(3))
+    k = D.shape[2]
+    J = D.reshape(-1, k)
+    JtJi = np.linalg.inv(J.T @ J + 1e-12 * np.eye(k))
     scores = np.einsum("nwk,nw->nk", D, r)
     ids, inv = np.unique(cluster, return_inverse=True)
-    g = np.zeros((ids.size, 3))
+    g = np.zeros((ids.size, k))
     np.add.at(g, inv, scores)
     return ids, g @ JtJi * math.sqrt(n_obs / dof)
 
 
 def _jacobian_at(P: np.ndarray, cols: np.ndarray, yc: np.ndarray, p: np.ndarray,
                  spread: Spread) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Residuals (N, W), the per-row coefficients (N, 4) and the projected Jacobian
-    (N, W, 3) of the model B c with respect to a, b, s (c held) at ``p`` (no step taken)."""
+    """Residuals (N, W), the per-row coefficients (N, 4 or 5) and the projected Jacobian
+    (N, W, 3 or 5) of the model B c with respect to a, b, s (and d, w of a line along the
+    edge) (c held) at ``p`` (no step taken)."""
     u = cols - (p[0] + p[1] * yc)[:, None]
     F, dFu, dFs, B = step_basis(u, p[2], spread)
+    if p.size == 5:
+        G, dGu, dGw = line_basis(u, p[3], p[4])
+        B = np.concatenate([B, G[..., None]], axis=2)
     c = solve_rows(B, P[..., None])[..., 0]
     r = P - (B @ c[..., None])[..., 0]
     da = -(c[:, 1:2] + c[:, 2:3] * dFu + c[:, 3:4] * (F + u * dFu))
-    D = np.stack([da, da * yc[:, None], (c[:, 2:3] + c[:, 3:4] * u) * dFs], axis=2)
+    ds = (c[:, 2:3] + c[:, 3:4] * u) * dFs
+    if p.size == 5:
+        da = da - c[:, 4:5] * dGu
+        D = np.stack([da, da * yc[:, None], ds, -c[:, 4:5] * dGu, c[:, 4:5] * dGw], axis=2)
+    else:
+        D = np.stack([da, da * yc[:, None], ds], axis=2)
     D = D - B @ solve_rows(B, D)
     return p, r, c, D
 
@@ -269,13 +476,14 @@ def _cluster_cov(D: np.ndarray, r: np.ndarray, cluster: np.ndarray, n_obs: int,
     """Covariance of (a, b, s): the sandwich (J^T J)^-1 (sum_g s_g s_g^T) (J^T J)^-1 with
     s_g the score J^T r of each cluster g of rows, scaled by n / dof; never below the
     ordinary (independent pixels) covariance."""
-    J = D.reshape(-1, 3)
-    JtJi = np.linalg.inv(J.T @ J + 1e-12 * np.eye(3))
+    k = D.shape[2]
+    J = D.reshape(-1, k)
+    JtJi = np.linalg.inv(J.T @ J + 1e-12 * np.eye(k))
     s2 = float(np.sum(r ** 2)) / dof
     plain = s2 * JtJi
     scores = np.einsum("nwk,nw->nk", D, r)  # per row
     _, inv = np.unique(cluster, return_inverse=True)
-    g = np.zeros((int(inv.max()) + 1, 3))
+    g = np.zeros((int(inv.max()) + 1, k))
     np.add.at(g, inv, scores)
     meat = g.T @ g * (n_obs / dof)
     sand = JtJi @ meat @ JtJi
