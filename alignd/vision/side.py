@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from alignd.errors import VisionError
-from alignd.vision.edge_profile import Spread, fit_vertical_edge
+from alignd.vision.edge_profile import Highlight, Spread, fit_vertical_edge, window_profile
 from alignd.vision.edges import (
     EdgePoints,
     Line,
@@ -72,6 +72,7 @@ class SideEdge:
     bands: np.ndarray | None = None
     band_angle_deg: np.ndarray | None = None
     rms_dn: float | None = None  # the profile fit's residual (DN)
+    highlight: Highlight | None = None  # a line fitted along the edge (a polished rod's)
 
 
 @dataclass(frozen=True)
@@ -154,6 +155,15 @@ def find_vertical_edges(image: np.ndarray, *, min_contrast: float = 15.0,
         found = _refine(gray, c, h, min_contrast, min_rows, end_trim_rows)
         if found is not None:  # second pass: windows re-centred on the first fit
             found = _refine(gray, found[0], h, min_contrast, min_rows, end_trim_rows)
+        if (found is None or found[0].rms_px > _UNREAD_RMS_PX
+                or found[0].n_used < _TALL * h):
+            # the area method could not read a tall edge (a pole's?) in all its rows: a
+            # highlight along it, in its window?
+            lit = _with_highlight(gray, c if found is None else found[0], min_contrast,
+                                  min_rows, math.inf if found is None else found[0].rms_px)
+            if lit is not None:
+                edges.append(lit)
+                continue
         if found is None:
             continue
         ln, pts = found
@@ -195,6 +205,51 @@ def _refine(gray: np.ndarray, seed: Line, h: int, min_contrast: float, min_rows:
     if ln is None or ln.n_used < min_rows:
         return None
     return ln, pts
+
+
+# an edge seen over _TALL of the image's rows (a pole's edge runs through it) is looked at
+# again as a step with a line beside it where its area-method crossings scatter more than
+# _UNREAD_RMS_PX (a straight edge's scatter 0.05-0.15 px; a polished pole's edge with its
+# highlight 3 px inside, in the area method's window, 0.6 px over a sixth of its rows) or
+# cover less than _TALL of the rows it was seen in (a highlight's flank, 0.28 px over
+# 520 of 700). Shorter edges are not: a holder's or a shadow's edges, looked at again,
+# cost 0.1 s each and were never a polished pole's
+_UNREAD_RMS_PX = 0.3
+_TALL = 0.8
+# the half-width of its windows (px): room for the edge 7 px from where it was seen (on a
+# highlight's flank)
+_HIGHLIGHT_HW = 9
+
+
+def _with_highlight(gray: np.ndarray, seed: Line, min_contrast: float, min_rows: int,
+                    area_rms_px: float) -> SideEdge | None:
+    """The edge near ``seed`` fitted as a blurred step with a line along it
+    (:func:`alignd.vision.edge_profile.fit_vertical_edge`) over the image's height (every
+    second row: this finds the edge, :func:`_profiled` measures it); None
+    unless that found such a line and a step of ``min_contrast`` in ``min_rows`` rows. Its
+    line keeps the area method's scatter (``area_rms_px``, inf where it found too few
+    rows), so the sample's straightness rule (:func:`_auto_sample`) reads it as before:
+    such an edge is taken for the pole's, never for the sample's."""
+    h = gray.shape[0]
+    y_mid = (h - 1) / 2
+    b = -float(seed.n[1] / seed.n[0])
+    a, rows = float(seed.minor_at(y_mid)), np.arange(0, h, 2)
+    # a step alone rises or falls across the window; one with a line beside it turns back
+    got = window_profile(gray, a, b, y_mid, rows, _HIGHLIGHT_HW)
+    if got is None or np.sum(np.abs(np.diff(got[0]))) - abs(got[0][-1] - got[0][0]) < (
+            min_contrast):
+        return None
+    fit = fit_vertical_edge(gray, a, b, y_mid, rows, half_width=_HIGHLIGHT_HW,
+                            min_rows=min_rows // 2)
+    if fit is None or fit.highlight is None or abs(fit.contrast) < min_contrast:
+        return None
+    # every second row was read: the rows it was measured in are twice those read
+    ln = replace(fit.line(), rms_px=area_rms_px, n_used=2 * int(fit.rows.size),
+                 n_points=2 * int(fit.rows.size))
+    span = (int(fit.rows.min()), int(fit.rows.max()))
+    angle, sa = _angle_of(ln)
+    return SideEdge(angle, sa, float(ln.minor_at((span[0] + span[1]) / 2)), span,
+                    fit.contrast, ln, highlight=fit.highlight)
 
 
 def _spans(e: SideEdge, h: int, fraction: float) -> bool:
@@ -275,14 +330,18 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
     # 1.5 px, rejected good fits where the area method was off: 0.1-0.15 deg off on JPEG
     # frames, 1.8 px at an end, where the profile fit was within 0.003 deg)
     ends = np.array([r0, y_mid, r1], float)
-    if fit is None or np.max(np.abs(fit.a + fit.b * (ends - fit.y_mid)
-                                    - e.line.minor_at(ends))) > 3.0:
+    # (or where it found a line beside the edge, the line within 3 px of it: the edge found
+    # was the flank of a polished rod's highlight, the rod's edge a few px beyond)
+    beside = 0.0 if fit is None or fit.highlight is None else fit.highlight.offset_px
+    if fit is None or min(np.max(np.abs(fit.a + d + fit.b * (ends - fit.y_mid)
+                                        - e.line.minor_at(ends))) for d in {0.0, beside}) > 3.0:
         return None if strict else e
     ln = fit.line()
     ln = replace(ln, rms_px=e.line.rms_px)
     return replace(e, angle_deg=fit.angle_deg, sigma_deg=fit.sigma_deg, x_mid_px=fit.a, line=ln,
                    spread=fit.spread, half_width=hw, blur_px=fit.blur_px, bands=fit.bands,
-                   band_angle_deg=fit.band_angle_deg, rms_dn=fit.rms_dn)
+                   band_angle_deg=fit.band_angle_deg, rms_dn=fit.rms_dn,
+                   highlight=fit.highlight)
 
 
 def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
@@ -360,10 +419,18 @@ def _pole_runs(gray: np.ndarray, edges: list[SideEdge], max_width_px: float, row
     x = np.array([e.x_mid_px for e in srt])
     ends_agree = bool(abs(lv[0, 0] - lv[-1, 1]) <= _BACKGROUND_LEVEL * np.median(step)
                       or abs(summed[-1]) <= _BACKGROUND_LEVEL * np.median(np.abs(c)))
+    # a region narrower than _LEVEL_FAR between two edges is a line, not a level: a
+    # highlight along a polished rod (its flanks found as edges, its peak as bright as the
+    # background), never a pole (the edge finder needs ~12 px between two edges). A bar
+    # bounded by one on its outside is no pole; inside one, its level is the rod's surface
+    gaps = np.diff(x)
+    line_right = np.concatenate([gaps < _LEVEL_FAR, [False]])  # edge k's right region
+    line_left = np.concatenate([[False], gaps < _LEVEL_FAR])
     runs = []
     for i, j in itertools.combinations(range(len(srt)), 2):
         if (c[i] * c[j] >= 0 or x[j] - x[i] > max_width_px
-                or abs(srt[i].angle_deg - srt[j].angle_deg) >= 0.5):
+                or abs(srt[i].angle_deg - srt[j].angle_deg) >= 0.5
+                or line_left[i] or line_right[j]):
             continue
         tol = _BACKGROUND_LEVEL * min(step[i], step[j])
         tol_c = _BACKGROUND_LEVEL * min(abs(c[i]), abs(c[j]))
@@ -371,8 +438,9 @@ def _pole_runs(gray: np.ndarray, edges: list[SideEdge], max_width_px: float, row
         if not (abs(lv[i, 0] - lv[j, 1]) <= tol
                 or (pair and abs(summed[i] - summed[j + 1]) <= tol_c)):
             continue  # not one level on both its sides
-        inside = np.concatenate([lv[i:j, 1], lv[i + 1:j + 1, 0]])
-        at = np.concatenate([x[i:j], x[i + 1:j + 1]])
+        level = ~line_right[i:j]  # the regions inside that are levels, not lines
+        inside = np.concatenate([lv[i:j, 1][level], lv[i + 1:j + 1, 0][level]])
+        at = np.concatenate([x[i:j][level], x[i + 1:j + 1][level]])
         if np.any(np.abs(inside - (lv[i, 0] + lv[j, 1]) / 2) <= tol):
             continue  # back at its outer level inside
         # the background under a linear gradient, from the image's two ends
