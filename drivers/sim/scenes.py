@@ -759,13 +759,41 @@ def _wide(poly: np.ndarray, ss: int) -> Polygon:
     return Polygon(poly * np.array([float(ss), 1.0]) + np.array([(ss - 1) / 2, 0.0]))
 
 
+def _polished_pole(rng: np.random.Generator, shape: tuple[int, int], ss: int,
+                   top_left: np.ndarray, angle_deg: float, width_px: float, level: float
+                   ) -> tuple[np.ndarray, dict[str, object]]:
+    """A polished rod's levels on the ss x wider drawing grid: ``level`` shaded across it
+    as a cylinder lit from one side (up to 40 % darker at one edge) plus a highlight, a
+    Gaussian 0.5-2.5 px wide, 60-200 DN strong (short of full scale), its centre 8-92 % of
+    the way across (a lamp beside the camera puts it mid-rod, one far off to the side near
+    an edge)."""
+    h, wss = shape
+    x = (np.arange(wss) - (ss - 1) / 2) / ss  # pixel coordinates of the sub-columns
+    y = np.arange(h, dtype=np.float64)[:, None]
+    ta = math.tan(math.radians(angle_deg))
+    u = (x[None, :] - (top_left[0] - (y - top_left[1]) * ta)) / width_px  # 0..1 across
+    at = float(rng.uniform(0.08, 0.92))
+    wide = float(rng.uniform(0.5, 2.5))
+    amp = min(float(rng.uniform(60, 200)), max(240.0 - level, 30.0))  # short of full scale
+    shade = float(rng.uniform(-0.4, 0.4))  # darker toward the edge away from the light
+    lv = level * (1.0 - np.where(shade > 0, shade * np.clip(u, 0, 1),
+                                 -shade * (1 - np.clip(u, 0, 1)))) + amp * np.exp(
+        -0.5 * ((u - at) * width_px / wide) ** 2)
+    info: dict[str, object] = {"highlight_at": at, "highlight_px": wide,
+                               "highlight_dn": amp, "pole_shade": shade}
+    return lv.astype(np.float32), info
+
+
 def random_side_scene(rng: np.random.Generator, category: str | None = None,
                       size_px: tuple[int, int] = (1280, 720), frames: int = 1,
-                      gamma: ToneCurve = 1.0) -> SideSceneSample:
+                      gamma: ToneCurve = 1.0, polished: bool = False) -> SideSceneSample:
     """One randomised side-camera view (see the module docstring); ``frames`` > 1 adds
     further frames of the same view with independent noise, as a camera streams them
     (``SideSceneSample.frames``). ``gamma``: the camera's tone curve, applied before the
-    coding (:class:`Encoding`; the same draws as without it)."""
+    coding (:class:`Encoding`; the same draws as without it). ``polished``: the pole is a
+    polished metal rod, as the thesis' was: a cylinder's shading across it and a specular
+    highlight along it, anywhere across it (:func:`_polished_pole`; its draws come from a
+    generator of its own, so the rest of the view is the one drawn without it)."""
     cat = str(category or SIDE_CATEGORIES[int(rng.integers(len(SIDE_CATEGORIES)))])
     w, h = size_px
     enc = Encoding(8, False, int(rng.integers(60, 96))) if cat == "jpeg" else (
@@ -836,7 +864,13 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     slab = slanted(s_left, samp_ang, y_mid, y_top, y_bot, ws)
     params: dict[str, object] = {"full_height": full, "pole_left": pole_left, "wp": wp,
                                  "ws": ws, "gap": gap, "tilt": tilt}
-    _paint(img, _wide(pole, ss), ras, pole_lv)
+    if polished:
+        shine, info = _polished_pole(rng.spawn(1)[0], img.shape, ss, pole[0], pole_ang, wp,
+                                     pole_lv)
+        _paint(img, _wide(pole, ss), ras, shine)
+        params.update(info)
+    else:
+        _paint(img, _wide(pole, ss), ras, pole_lv)
     if not full:
         # the holder and the platform below the sample, wider, their own small angles
         hh = float(rng.uniform(25, 70))
