@@ -257,17 +257,27 @@ def window_profile(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: n
     """The mean over ``rows`` of the windows a fit of the edge near x = a0 + b0 (y - y_mid)
     reads, and the line's mean offset from the windows' centre pixels (px); None with
     fewer than 8 rows inside the image (``x_limits``)."""
+    rows, start = _windows(gray, a0, b0, y_mid, rows, half_width, x_limits)
+    if rows.size < 8:
+        return None
+    prof = gray[rows[:, None], start[:, None] + np.arange(2 * half_width + 1)].astype(
+        np.float64).mean(axis=0)
+    return prof, float(np.mean(a0 + b0 * (rows - y_mid) - (start + half_width)))
+
+
+def _windows(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.ndarray,
+             half_width: int, x_limits: tuple[int, int] | None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The rows (inside the image) whose window of 2 half_width + 1 px round the line
+    x = a0 + b0 (y - y_mid) lies inside ``x_limits`` (default the image), and each
+    window's first column."""
     h, w = gray.shape
     lo, hi = x_limits if x_limits is not None else (0, w)
     rows = np.asarray(rows, int)
     rows = rows[(rows >= 0) & (rows < h)]
     start = np.round(a0 + b0 * (rows - y_mid)).astype(int) - half_width
-    m = 2 * half_width + 1
-    ok = (start >= lo) & (start + m <= hi)
-    if ok.sum() < 8:
-        return None
-    prof = gray[rows[ok, None], start[ok, None] + np.arange(m)].astype(np.float64).mean(axis=0)
-    return prof, float(np.mean(a0 + b0 * (rows[ok] - y_mid) - (start[ok] + half_width)))
+    ok = (start >= lo) & (start + 2 * half_width + 1 <= hi)
+    return rows[ok], start[ok]
 
 
 def _line_starts(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.ndarray,
@@ -372,14 +382,8 @@ def _fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
                        x_limits: tuple[int, int] | None, min_rows: int, spread: Spread,
                        clip_levels: tuple[float, float] | None,
                        line_start: _LineStart | None = None) -> ProfileFit | None:
-    h, w = gray.shape
-    lo, hi = x_limits if x_limits is not None else (0, w)
-    rows = np.asarray(rows, int)
-    rows = rows[(rows >= 0) & (rows < h)]
-    start = np.round(a0 + b0 * (rows - y_mid)).astype(int) - half_width
+    rows, start = _windows(gray, a0, b0, y_mid, rows, half_width, x_limits)
     m = 2 * half_width + 1
-    ok = (start >= lo) & (start + m <= hi)
-    rows, start = rows[ok], start[ok]
     if rows.size < min_rows:
         return None
     cols = start[:, None] + np.arange(m)[None, :]
