@@ -207,13 +207,13 @@ def _refine(gray: np.ndarray, seed: Line, h: int, min_contrast: float, min_rows:
     return ln, pts
 
 
-# an edge seen over _TALL of the image's rows (a pole's edge runs through it) is looked at
-# again as a step with a line beside it where its area-method crossings scatter more than
-# _UNREAD_RMS_PX (a straight edge's scatter 0.05-0.15 px; a polished pole's edge with its
-# highlight 3 px inside, in the area method's window, 0.6 px over a sixth of its rows) or
-# cover less than _TALL of the rows it was seen in (a highlight's flank, 0.28 px over
-# 520 of 700). Shorter edges are not: a holder's or a shadow's edges, looked at again,
-# cost 0.1 s each and were never a polished pole's
+# an edge is looked at again as a step with a line beside it (a polished pole's edge runs
+# through the image) where its area-method crossings scatter more than _UNREAD_RMS_PX (a
+# straight edge's scatter 0.05-0.15 px; a pole's edge with its highlight 3 px inside, in
+# the area method's window, 0.6 px over a sixth of its rows) or cover less than _TALL of
+# the image's rows (a highlight's flank, 0.28 px over 520 of 720), and where its mean
+# profile turns back (:func:`_with_highlight`: that test is what keeps the look cheap; a
+# holder's or a shadow's edges, each fitted again, cost 0.1 s and were never a pole's)
 _UNREAD_RMS_PX = 0.3
 _TALL = 0.8
 # the half-width of its windows (px): room for the edge 7 px from where it was seen (on a
