@@ -9,13 +9,16 @@ LinAlgError; the shadow was taken for the pole or the sample (0.6 deg off)."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import cv2
 import numpy as np
 import pytest
 
 from alignd.errors import VisionError
-from alignd.vision.side import measure_tilt
+from alignd.vision import side
+from alignd.vision.edge_profile import Highlight
+from alignd.vision.side import measure_tilt, measure_tilt_frames
 from drivers.sim.render import Polygon, Raster, coverage
 from drivers.sim.scenes import random_side_scene
 
@@ -174,3 +177,41 @@ def test_a_polished_poles_highlight_is_never_taken_for_an_edge_of_the_pole(
     m = measure_tilt(sc.image)
     assert min(abs(m.sample_edges[0].x_mid_px - x) for x in sc.sample_x_px) < 0.5
     assert m.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.01)
+
+
+def test_the_pre_checks_later_frames_keep_the_first_frames_model(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A later frame of the view is fitted with the first frame's model, a line beside the
+    edge (started from the first frame's) or none: frames that took the line and frames
+    that did not scattered a corpus view's pre-check (its error 0.0011 -> 0.0025 deg, 16
+    -> 64 frames)."""
+    img, _, _ = _view((200.0, 40.0, 70.0), 150.0, -0.85, 0.0, False)
+    rng = np.random.default_rng(3)
+    frames = [np.clip(np.rint(img + rng.normal(0.0, 1.0, img.shape)), 0, 255).astype(np.uint8)
+              for _ in range(4)]
+    asked: list[object] = []
+    real = side.fit_vertical_edge
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        asked.append(kwargs.get("line"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(side, "fit_vertical_edge", spy)
+    first = measure_tilt(frames[0])
+    n_first = len(asked)
+    asked.clear()
+    av = measure_tilt_frames(frames)
+    lit = [e.highlight for e in first.pole_edges if e.highlight is not None]
+    assert len(lit) == 1
+    # the first frame is measured as measure_tilt measures it; each later frame fits every
+    # edge once, with the first frame's model
+    later = asked[n_first:]
+    n_edges = len(first.pole_edges) + len(first.sample_edges)
+    assert len(later) == 3 * n_edges
+    assert [a for a in later if isinstance(a, Highlight)] == lit * 3
+    assert sum(a is False for a in later) == 3 * (n_edges - 1)
+    for f in av.frames:
+        near = min(f.pole_edges, key=lambda e: e.x_mid_px)
+        assert near.highlight is not None
+        assert near.highlight.offset_px == pytest.approx(lit[0].offset_px, abs=0.1)
+    assert av.tilt_deg == pytest.approx(-0.3, abs=0.001)

@@ -178,9 +178,14 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
                       rows: np.ndarray, *, half_width: int = 7, blur0: float = 1.0,
                       x_limits: tuple[int, int] | None = None, min_rows: int = 20,
                       spread: Spread = "optics",
-                      clip_levels: tuple[float, float] | None = (0.0, 255.0)
-                      ) -> ProfileFit | None:
+                      clip_levels: tuple[float, float] | None = (0.0, 255.0),
+                      line: Highlight | bool | None = None) -> ProfileFit | None:
     """Fit the edge near x = a0 + b0 (y - y_mid) over ``rows`` (the start to about a pixel).
+
+    ``line``: a line along the edge (:class:`Highlight`) is looked for where the plain step
+    fits badly (None), never (False), or fitted from the one given (a later frame of the
+    same view: the model stays the view's, since frames that took it and frames that did
+    not scattered a pre-check's tilt).
 
     Windows of 2 * half_width + 1 px, fixed by the start line, stay inside ``x_limits``
     (x0, x1 exclusive; default the image). ``spread``: how the blur arises (see
@@ -203,7 +208,13 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
         except _OffTheWindows:
             return None
 
+    if isinstance(line, Highlight):
+        kept = fitted(_LineStart(0.0, line.offset_px, line.width_px, blur0))
+        if kept is not None and kept.highlight is not None:
+            return kept
     plain = fitted(None)
+    if line is False or isinstance(line, Highlight):
+        return plain
     if plain is not None and (
             plain.rms_dn <= LINE_TRIGGER * _row_noise(gray, a0, b0, y_mid, rows, half_width)
             or _bump(gray, plain, half_width) <= LINE_BUMP * abs(_rise(

@@ -307,10 +307,12 @@ SPREADS: tuple[Spread, ...] = ("optics", "pixel grid")
 def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
               roi: tuple[int, int, int, int] | None, end_trim_rows: int = 10,
               spreads: tuple[Spread, ...] = SPREADS, strict: bool = False,
-              half_width: int | None = None) -> SideEdge | None:
+              half_width: int | None = None, line: Highlight | bool | None = None
+              ) -> SideEdge | None:
     """The edge re-measured as a blurred step over its rows (:mod:`edge_profile`); the
     window stays clear of the other edges and inside the region. Unchanged if that fails
-    (None when ``strict``: a tracked edge must be measured in this frame)."""
+    (None when ``strict``: a tracked edge must be measured in this frame). ``line``: a line
+    beside the edge, as :func:`alignd.vision.edge_profile.fit_vertical_edge` takes it."""
     h, w = gray.shape
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, w, h)
     x0, y0, x1, y1 = max(int(x0), 0), max(int(y0), 0), min(int(x1), w), min(int(y1), h)
@@ -322,7 +324,8 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
     b = -float(e.line.n[1] / e.line.n[0])
     fits = [fit_vertical_edge(gray, float(e.line.minor_at(y_mid)), b, y_mid,
                               np.arange(r0, r1 + 1), half_width=hw, x_limits=(x0, x1),
-                              spread=spread, blur0=e.blur_px or 1.0) for spread in spreads]
+                              spread=spread, blur0=e.blur_px or 1.0, line=line)
+            for spread in spreads]
     # the spread model that describes the edge better: residuals in DN over the same pixels
     fit = min((f for f in fits if f is not None), key=lambda f: f.rms_dn, default=None)
     # it refines the edge found, never moves to another one: within 3 px of it over the
@@ -605,7 +608,7 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
     else:
         pole = [p for e in pole if (p := _profiled(gray, e, others, pole_roi_px)) is not None]
         sample = [p for e in sample
-                  if (p := _profiled(gray, e, others, sample_roi_px)) is not None]
+                  if (p := _profiled(gray, e, others, sample_roi_px, line=False)) is not None]
     return _measurement(sample, pole, mode, (pole_roi_px, sample_roi_px))
 
 
@@ -650,7 +653,11 @@ def _one_spread(gray: np.ndarray, pole: list[SideEdge], sample: list[SideEdge],
     for spread in SPREADS:
         ps = [_profiled(gray, e, others, pole_roi, spreads=(spread,), strict=True)
               for e in pole]
-        ss = [_profiled(gray, e, others, sample_roi, spreads=(spread,), strict=True)
+        # a line beside an edge is a polished pole's highlight: the samples are diffuse (a
+        # shadow's or a lamp's boundary beside an uneven-light sample's edge, fitted as
+        # one, doubled its error and the pre-check took 64 frames where it took 8)
+        ss = [_profiled(gray, e, others, sample_roi, spreads=(spread,), strict=True,
+                        line=False)
               for e in sample]
         fits = [f for f in (*ps, *ss) if f is not None]
         if len(fits) < len(ps) + len(ss):
@@ -683,8 +690,10 @@ def _tracked(image: np.ndarray, prev: SideMeasurement) -> SideMeasurement | None
                                       (prev.sample_edges, sample_roi))):
         for e in edges:
             spreads = (e.spread,) if e.spread is not None else SPREADS
+            # the first frame's model: a line beside the edge there, or none
             p = _profiled(gray, e, others, roi, spreads=spreads, strict=True,
-                          half_width=e.half_width)
+                          half_width=e.half_width,
+                          line=e.highlight if e.highlight is not None else False)
             if p is None:
                 return None
             out[k].append(p)
