@@ -183,9 +183,9 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     """Fit the edge near x = a0 + b0 (y - y_mid) over ``rows`` (the start to about a pixel).
 
     ``line``: a line along the edge (:class:`Highlight`) is looked for where the plain step
-    fits badly (None), never (False), or fitted from the one given (a later frame of the
-    same view: the model stays the view's, since frames that took it and frames that did
-    not scattered a pre-check's tilt).
+    fits badly (None), never (False), or fitted from the one given, else the plain step (a
+    later frame of the same view: the model stays the view's, since frames that took it
+    and frames that did not scattered a pre-check's tilt).
 
     Windows of 2 * half_width + 1 px, fixed by the start line, stay inside ``x_limits``
     (x0, x1 exclusive; default the image). ``spread``: how the blur arises (see
@@ -216,13 +216,17 @@ def fit_vertical_edge(gray: np.ndarray, a0: float, b0: float, y_mid: float,
     if line is False or isinstance(line, Highlight):
         return plain
     if plain is not None and (
-            plain.rms_dn <= LINE_TRIGGER * _row_noise(gray, a0, b0, y_mid, rows, half_width)
-            or _bump(gray, plain, half_width) <= LINE_BUMP * abs(_rise(
-                gray, a0, b0, y_mid, rows, half_width, x_limits))):
+            plain.rms_dn <= LINE_TRIGGER * _row_noise(gray, a0, b0, y_mid, rows, half_width)):
+        return plain
+    mean = window_profile(gray, a0, b0, y_mid, rows, half_width, x_limits)
+    if mean is None:
+        return plain
+    prof, frac = mean
+    rise = float(prof[-1] - prof[0])  # how the window's mean profile rises end to end
+    if plain is not None and _bump(gray, plain, half_width) <= LINE_BUMP * abs(rise):
         return plain
     best = plain
-    starts, rise = _line_starts(gray, a0, b0, y_mid, rows, half_width, x_limits)
-    for start in starts:
+    for start in _line_starts(prof, frac, half_width):
         f = fitted(start)
         # the step rises or falls as the window does from end to end: a step the other way
         # with a steep slope beside it fitted a narrow rod's edge and highlight as well
@@ -291,18 +295,13 @@ def _windows(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.ndar
     return rows[ok], start[ok]
 
 
-def _line_starts(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.ndarray,
-                 half_width: int, x_limits: tuple[int, int] | None, keep: int = 3
-                 ) -> tuple[list[_LineStart], float]:
+def _line_starts(prof: np.ndarray, frac: float, half_width: int, keep: int = 3
+                 ) -> list[_LineStart]:
     """The ``keep`` best starts, with edges a pixel apart or more, for a step with a line
-    beside it, on a grid over the windows' mean profile, and how much that profile rises
-    from its first pixel to its last (DN). The fit from a fixed start near the line's flank
-    settled on the flank (a step the wrong way with a dark line beside it); the grid sees
-    every arrangement of the step and the line at once."""
-    got = window_profile(gray, a0, b0, y_mid, rows, half_width, x_limits)
-    if got is None:
-        return [], 0.0
-    prof, frac = got
+    beside it, on a grid over the windows' mean profile ``prof`` (:func:`window_profile`,
+    the start line ``frac`` px off the windows' centres). The fit from a fixed start near
+    the line's flank settled on the flank (a step the wrong way with a dark line beside
+    it); the grid sees every arrangement of the step and the line at once."""
     m = prof.size
     k = np.arange(m) - half_width - frac
     grid = [(t, d, wd, sb)
@@ -310,9 +309,8 @@ def _line_starts(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.
             for d in np.arange(-half_width + 0.5, half_width - 0.5 + 1e-9, 0.5)
             if abs(d) >= 1.0 and abs(t + d) <= half_width
             for wd in (0.7, 1.3, 2.2) for sb in (0.7, 1.4)]
-    rise = float(prof[-1] - prof[0])
     if not grid:
-        return [], rise
+        return []
     g = np.array(grid)
     u = k[None, :] - g[:, 0:1]  # (G, m): offset from the step
     rss = np.empty(len(grid))
@@ -329,14 +327,7 @@ def _line_starts(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.
             out.append(_LineStart(float(t), float(d), float(wd), float(sb)))
         if len(out) == keep:
             break
-    return out, rise
-
-
-def _rise(gray: np.ndarray, a0: float, b0: float, y_mid: float, rows: np.ndarray,
-          half_width: int, x_limits: tuple[int, int] | None) -> float:
-    """How much the windows' mean profile rises from its first pixel to its last (DN)."""
-    got = window_profile(gray, a0, b0, y_mid, rows, half_width, x_limits)
-    return 0.0 if got is None else float(got[0][-1] - got[0][0])
+    return out
 
 
 def _bump(gray: np.ndarray, fit: ProfileFit, half_width: int) -> float:
