@@ -728,8 +728,8 @@ def plates(quick: bool) -> list[Target]:
 def polished_poles(quick: bool, seed: int) -> list[Target]:
     """The corpus's side views with a polished metal pole, as the thesis' was
     (``random_side_scene(..., polished=True)``: a cylinder's shading and a specular
-    highlight 0.5-2.5 px wide anywhere across the pole; docs/vision.md, "A polished
-    pole"). Each view measured with the regions and without, over 8 frames (the
+    highlight 0.5-2.5 px wide anywhere across the pole; docs/vision.md, "A highlight
+    near the pole's edge"). Each view measured with the regions and without, over 8 frames (the
     pre-check's first 8); a sample edge 4 px or more from the truth is a wrong edge.
     60 views (10 in --quick)."""
     rng = np.random.default_rng(seed)

@@ -157,7 +157,7 @@ def find_vertical_edges(image: np.ndarray, *, min_contrast: float = 15.0,
             found = _refine(gray, found[0], h, min_contrast, min_rows, end_trim_rows)
         if (found is None or found[0].rms_px > _UNREAD_RMS_PX
                 or found[0].n_used < _TALL * h):
-            # the area method could not read a tall edge (a pole's?) in all its rows: a
+            # the area method could not read the edge (a pole's?) in most rows: a
             # highlight along it, in its window?
             lit = _with_highlight(gray, c if found is None else found[0], min_contrast,
                                   min_rows, math.inf if found is None else found[0].rms_px)

@@ -793,7 +793,8 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     coding (:class:`Encoding`; the same draws as without it). ``polished``: the pole is a
     polished metal rod, as the thesis' was: a cylinder's shading across it and a specular
     highlight along it, anywhere across it (:func:`_polished_pole`; its draws come from a
-    generator of its own, so the rest of the view is the one drawn without it)."""
+    generator of its own, so the view's geometry, levels and first frame are, outside the
+    pole, those drawn without it; its further frames' noise differs)."""
     cat = str(category or SIDE_CATEGORIES[int(rng.integers(len(SIDE_CATEGORIES)))])
     w, h = size_px
     enc = Encoding(8, False, int(rng.integers(60, 96))) if cat == "jpeg" else (
