@@ -90,3 +90,34 @@ def test_a_full_height_sample_narrower_than_the_pole_is_ambiguous() -> None:
         m = measure_tilt(img)
         assert np.mean([e.x_mid_px for e in m.pole_edges]) == pytest.approx(pole_x, abs=1.0)
         assert m.tilt_deg == pytest.approx(-0.3, abs=0.005)
+
+
+
+@pytest.mark.parametrize("pole_right", [False, True])
+def test_a_pole_read_in_part_of_its_rows_beside_a_narrow_full_height_sample_is_ambiguous(
+        pole_right: bool) -> None:
+    """A 20 px pole with one edge hidden in the top 45 % of the rows (something as dark
+    as the pole behind it there), beside a full-height sample 100 px wide (under a tenth of
+    the frame): the sample was the only narrow bar running through the image, so it was
+    taken for the pole and the pole's edge for the sample's (+0.30 deg against -0.30).
+    The narrower bar the long edges hold says the pole may be elsewhere: refused, naming
+    the regions; with them, measured."""
+    px, sx = (800.0, 560.0) if pole_right else (400.0, 560.0)
+    img = np.full((_H, _W), 200.0)
+    box = (0, 0, _W, _H)
+    behind = Polygon(np.array([[px + 20.0, -10.0], [px + 100.0, -10.0], [px + 100.0, 324.0],
+                               [px + 20.0, 324.0]]) if not pole_right else
+                     np.array([[px - 80.0, -10.0], [px, -10.0], [px, 324.0],
+                               [px - 80.0, 324.0]]))
+    for poly, level in ((behind, 40.0), (_bar(px, 20.0, 0.0), 40.0),
+                        (_bar(sx, 100.0, 0.3), 70.0)):
+        img += (level - img) * coverage(poly, _RAS, box)
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8)
+    img += np.random.default_rng(1).normal(0.0, 1.0, img.shape)
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    with pytest.raises(VisionError, match=r"ambiguous.*narrower.*pole_roi_px"):
+        measure_tilt(img)
+    near = sx if not pole_right else sx + 100.0
+    m = measure_tilt(img, pole_roi_px=(int(px) - 30, 0, int(px) + 51, _H),
+                     sample_roi_px=(int(near) - 30, 0, int(near) + 31, _H))
+    assert m.tilt_deg == pytest.approx(-0.3, abs=0.005)

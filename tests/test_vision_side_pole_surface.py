@@ -170,12 +170,25 @@ def test_a_polished_poles_highlight_is_never_taken_for_an_edge_of_the_pole(
     the automatic mode measured the tilt on a wrong edge: the highlight's flank (a level
     as bright as the background beyond it) was taken for the pole's far edge, and that
     edge for the sample's. A region between two edges narrower than 12 px is now a line,
-    not a level: the pole and the sample are the right ones. (Still wrong, and in
-    docs/vision.md: seed 20, a faint pole edge blurred into a highlight 5 px inside it is
-    not found, and the sample, narrower than a tenth of the frame, is taken for the pole.)"""
+    not a level: the pole and the sample are the right ones."""
     sc = random_side_scene(np.random.default_rng(seed), category, polished=True)
     m = measure_tilt(sc.image)
     assert min(abs(m.sample_edges[0].x_mid_px - x) for x in sc.sample_x_px) < 0.5
+    assert m.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.01)
+
+
+
+def test_a_pole_lost_beside_a_narrow_full_height_sample_is_refused_not_swapped() -> None:
+    """Seed 20's first view: a faint pole (36 DN), defocused 1.4 px, its highlight 5 px
+    inside its near edge, which only the second, fainter edge search finds; the sample, a
+    full-height bar under a tenth of the frame wide, was the only narrow bar the first
+    found, so it was taken for the pole (tilt -0.018 deg against +0.023). The fainter
+    search's edges hold a narrower bar: refused as ambiguous, naming the regions; with
+    them, measured."""
+    sc = random_side_scene(np.random.default_rng(20), "full-height sample", polished=True)
+    with pytest.raises(VisionError, match=r"ambiguous.*narrower.*pole_roi_px"):
+        measure_tilt(sc.image)
+    m = measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
     assert m.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.01)
 
 

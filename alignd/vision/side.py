@@ -492,6 +492,31 @@ def _auto_pole(gray: np.ndarray, edges: list[SideEdge], h: int, min_fraction: fl
     return []
 
 
+def _no_narrower_bar(gray: np.ndarray, edges: list[SideEdge], pole: list[SideEdge],
+                     h: int, min_fraction: float) -> None:
+    """A VisionError where the long edges (over half the rows) hold a bar narrower than the
+    full-height one taken for the pole, one of its edges running through the image: the
+    pole with its other edge read in part of the rows (a polished rod's highlight beside
+    it) or found only by the fainter search, and the bar taken a full-height sample. Its
+    tilt was measured against the pole's own edge, the sign flipped (0.26 deg off)."""
+    lo, hi = sorted(e.x_mid_px for e in pole)
+    outside = [e for e in edges if not lo + 3 < e.x_mid_px < hi - 3]  # not its surface
+    try:
+        bar = _pole_runs(gray, outside, 0.9 * (hi - lo), h)
+    except VisionError:  # two narrow bars side by side: not the pole taken either
+        bar = []
+    # one of its edges runs through the whole image, as a pole's does: a sample on its
+    # holder narrower than the pole is a bar of long edges too (our own renderer's, over
+    # 92 % of the height)
+    if len(bar) == 2 and any(_spans(e, h, min_fraction) for e in bar):
+        a, b = sorted(e.x_mid_px for e in bar)
+        raise VisionError(
+            f"side image: the reference pole is ambiguous: the bar at x {lo:.0f}-{hi:.0f} px "
+            f"runs through the image, but a narrower one at x {a:.0f}-{b:.0f} px has edges "
+            "found in part of the rows or only at a lower contrast; either could be the "
+            "pole; set side_camera.pole_roi_px and sample_roi_px")
+
+
 def _merge(a: list[SideEdge], b: list[SideEdge]) -> list[SideEdge]:
     """Edges of two searches, one per position: the first search's where both found it,
     unless the second's is straighter and measured in more rows. On a faint edge the
@@ -579,6 +604,11 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
                                                           canny=FAINT_CANNY))
                 pole = _auto_pole(gray, edges, h, pole_min_fraction,
                                   max_pole_width_px or 0.1 * w)
+            if pole:  # a pole edge the first search missed may show it is elsewhere
+                _no_narrower_bar(gray, edges if faint_searched else _merge(
+                    edges, find_vertical_edges(image, min_contrast=min_contrast,
+                                               canny=FAINT_CANNY)), pole, h,
+                                 pole_min_fraction)
         if pole_x_px is not None:
             pole = _pole_pair(pool, max_pole_width_px or 0.1 * w)
         if not pole and pole_x_px is not None and pool:
