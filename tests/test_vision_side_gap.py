@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from alignd.errors import VisionError
-from alignd.vision.side import measure_tilt
+from alignd.vision.side import _pole_pair, _shifted, find_vertical_edges, measure_tilt
 from drivers.sim.render import Polygon, Raster, coverage
 
 _W, _H = 1280, 720
@@ -121,3 +121,47 @@ def test_a_pole_read_in_part_of_its_rows_beside_a_narrow_full_height_sample_is_a
     m = measure_tilt(img, pole_roi_px=(int(px) - 30, 0, int(px) + 51, _H),
                      sample_roi_px=(int(near) - 30, 0, int(near) + 31, _H))
     assert m.tilt_deg == pytest.approx(-0.3, abs=0.005)
+
+
+
+
+def test_a_regions_other_edges_keep_the_pole_edges_window_clear() -> None:
+    """A bright stripe 6 px wide, 8 px inside one edge of a 40 px pole (a polished rod's
+    broad highlight), found in the pole's region as two edges of its own. With
+    regions the windows only kept clear of the pole's and the sample's edges, so that
+    edge's window (7 px each side) took in the stripe's flank: 0.25 px off (polished corpus
+    views: up to 0.006 deg of tilt). Now they keep clear of every edge the regions hold, as
+    without regions they keep clear of every edge in the image. (The same stripe inside the
+    other edge is not told from that edge by the edge search, and is still 0.25 px off,
+    with or without regions.)"""
+    px, sx = 400.0, 560.0
+    img = np.full((_H, _W), 200.0)
+    box = (0, 0, _W, _H)
+    for poly, level in ((_bar(px, 40.0, 0.0), 40.0), (_bar(px + 26.0, 6.0, 0.0), 150.0),
+                        (_bar(sx, 300.0, 0.3), 70.0)):
+        img += (level - img) * coverage(poly, _RAS, box)
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.2)
+    img += np.random.default_rng(1).normal(0.0, 1.0, img.shape)
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    m = measure_tilt(img, pole_roi_px=(int(px) - 30, 0, int(px) + 71, _H),
+                     sample_roi_px=(int(sx) - 30, 0, int(sx) + 31, _H))
+    beside = max(m.pole_edges, key=lambda e: e.x_mid_px)
+    assert beside.x_mid_px == pytest.approx(px + 40.0, abs=0.05)
+    assert beside.half_width is not None and beside.half_width <= 4
+    assert m.tilt_deg == pytest.approx(-0.3, abs=0.002)
+
+
+@pytest.mark.parametrize(("apart", "paired"), [(6.0, False), (11.0, False), (15.0, True)])
+def test_a_pole_regions_pair_of_edges_is_no_narrower_than_a_line(apart: float,
+                                                                 paired: bool) -> None:
+    """The pole region's last resort, its narrowest pair of opposite edges, took a 6 px pair
+    (the edge of a polished pole shaded to the background's level at its other side, and a
+    line through its shading): 0.004 deg of tilt. Under 12 px between two edges is a line,
+    as the pole rule has it; the one edge alone is what is measured then."""
+    img, _, _ = _view((200.0, 40.0, 70.0), 40.0, 120.0, 300.0)
+    found = sorted(find_vertical_edges(img), key=lambda e: e.x_mid_px)[:2]  # the pole's
+    near = _shifted(found[1], int(found[0].x_mid_px + apart - found[1].x_mid_px), 0)
+    assert near.x_mid_px - found[0].x_mid_px == pytest.approx(apart, abs=0.5)
+    pair = _pole_pair([found[0], near], 60.0)
+    assert (pair == [found[0], near]) if paired else pair == []
+

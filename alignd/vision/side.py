@@ -348,10 +348,15 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
 
 
 def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
-    """The rod in its region: the narrowest pair of x-adjacent edges of opposite polarity."""
+    """The rod in its region: the narrowest pair of x-adjacent edges of opposite polarity,
+    at least _LEVEL_FAR apart (narrower is a line, as in :func:`_pole_runs`: a polished
+    pole shaded to the background's level at one side shows one edge, and a line through
+    its shading 6 px inside was paired with it, 0.004 deg of tilt; the one edge alone is
+    what :func:`measure_tilt` then falls back on)."""
     srt = sorted(edges, key=lambda e: e.x_mid_px)
     bars = {k: b.x_mid_px - a.x_mid_px for k, (a, b) in enumerate(itertools.pairwise(srt))
-            if a.contrast * b.contrast < 0 and b.x_mid_px - a.x_mid_px <= max_width_px
+            if a.contrast * b.contrast < 0
+            and _LEVEL_FAR <= b.x_mid_px - a.x_mid_px <= max_width_px
             and abs(a.angle_deg - b.angle_deg) < 0.5}
     if not bars:
         return []
@@ -571,6 +576,9 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
     image = gray = despeckle(as_gray(image, "side image"))
     h, w = gray.shape
     mode = "roi" if pole_roi_px is not None or sample_roi_px is not None else "auto"
+    # the regions' edges: the windows of the edges measured keep clear of them (a
+    # highlight's flank beside a pole's edge, found in its region, is no sample's or pole's)
+    seen: list[SideEdge] = []
     if pole_roi_px is not None:
         width = float(pole_roi_px[2] - pole_roi_px[0])
         pool = _roi_edges(image, pole_roi_px, "pole", min_contrast)
@@ -583,6 +591,7 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
         if not pole:
             raise VisionError(f"side image: reference pole not found in its region "
                               f"{tuple(pole_roi_px)}")
+        seen += pool
     edges: list[SideEdge] = []
     faint_searched = False  # edges holds the lower thresholds' edges too
     if pole_roi_px is None or sample_roi_px is None:
@@ -629,6 +638,7 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
             raise VisionError(f"side image: sample edge not found in its region "
                               f"{tuple(sample_roi_px)}")
         main = max(rest, key=_length)
+        seen += rest
     else:
         try:
             main, rest = _auto_sample(edges, pole, h, sample_x_px, max_edge_rms_px)
@@ -640,7 +650,7 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
                                                       canny=FAINT_CANNY))
             main, rest = _auto_sample(edges, pole, h, sample_x_px, max_edge_rms_px)
     sample = _partner(main, rest)
-    others = [*edges, *pole, *sample]
+    others = [*edges, *seen, *pole, *sample]
     joint = _one_spread(gray, pole, sample, others, pole_roi_px, sample_roi_px)
     if joint is not None:
         pole, sample = joint
