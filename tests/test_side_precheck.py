@@ -56,7 +56,7 @@ def test_pre_check_frames_mean_and_uncertainty() -> None:
     """Several frames of one view: the later ones track the first one's edges and give
     what a full measurement of that frame gives; the mean, and a standard uncertainty that
     is neither below the fits' own nor below the frames' scatter."""
-    sc = random_side_scene(np.random.default_rng(5), "sample on holder", frames=5)
+    sc = random_side_scene(np.random.default_rng(6), "sample on holder", frames=5)
     assert len(sc.frames) == 5 and not np.array_equal(sc.frames[0], sc.frames[1])
     rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
     av = measure_tilt_frames(list(sc.frames), **rois)

@@ -13,6 +13,7 @@ import pytest
 from alignd.errors import VisionError
 from alignd.vision.side import _pole_pair, _shifted, find_vertical_edges, measure_tilt
 from drivers.sim.render import Polygon, Raster, coverage
+from drivers.sim.scenes import random_side_scene
 
 _W, _H = 1280, 720
 _RAS = Raster((_W, _H), 1000.0, (_W / 2, _H / 2), 0.0)
@@ -165,3 +166,52 @@ def test_a_pole_regions_pair_of_edges_is_no_narrower_than_a_line(apart: float,
     pair = _pole_pair([found[0], near], 60.0)
     assert (pair == [found[0], near]) if paired else pair == []
 
+
+def _bright_pole(top: float, bottom: float, across: float) -> np.ndarray:
+    """A 40 px pole at x 400 brighter than full scale in part: its level runs from ``top``
+    to ``bottom`` DN down the frame (the light's gradient) and rises ``across`` DN to its
+    right edge (a cylinder's shading); clipped at 255. Background 150, the sample (70 DN)
+    at x 560 leaning 0.3 deg."""
+    img = np.full((_H, _W), 150.0)
+    box = (0, 0, _W, _H)
+    ys = np.linspace(0.0, 1.0, _H)[:, None]
+    xs = np.arange(_W)[None, :]
+    level = top + (bottom - top) * ys + across * np.clip((xs - 400.0) / 40.0, 0.0, 1.0)
+    img += (level - img) * coverage(_bar(400.0, 40.0, 0.0), _RAS, box)
+    img += (70.0 - img) * coverage(_bar(560.0, 300.0, 0.3), _RAS, box)
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
+    img += np.random.default_rng(1).normal(0.0, 1.0, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+_REGIONS = {"pole_roi_px": (370, 0, 471, _H), "sample_roi_px": (530, 0, 591, _H)}
+
+
+@pytest.mark.parametrize("regions", [False, True])
+def test_a_pole_clipped_at_one_edge_is_measured_on_the_other(regions: bool) -> None:
+    """A pole at full scale along its right edge (240-280 DN down the frame, 30 more at
+    that edge): the profile fit leaves its clipped rows out and cannot measure that edge,
+    which was then kept as the area method found it, 0.024 deg off at a stated 0.0003, and
+    it outweighed the left edge's fit: the tilt 0.024 deg off. Now the left edge alone."""
+    m = measure_tilt(_bright_pole(240.0, 280.0, 30.0), **(_REGIONS if regions else {}))
+    assert [round(e.x_mid_px) for e in m.pole_edges] == [400]
+    assert m.tilt_deg == pytest.approx(-0.3, abs=0.003)
+
+
+@pytest.mark.parametrize("regions", [False, True])
+def test_a_pole_clipped_at_both_edges_is_refused_naming_the_exposure(regions: bool) -> None:
+    """Both edges clipped in most rows (250-300 DN): the area method's lines on them made
+    the tilt 0.009-0.013 deg off at a stated 0.0005-0.0007 (25 u). Refused instead, saying
+    what to change."""
+    with pytest.raises(VisionError, match=r"pole's edge .* clipped .* exposure"):
+        measure_tilt(_bright_pole(250.0, 300.0, 0.0), **(_REGIONS if regions else {}))
+
+
+def test_a_corpus_view_with_its_pole_at_full_scale_is_refused() -> None:
+    """A corpus view whose pole sits at 251-255 DN in every row: its two edges were kept
+    as the area method found them, 0.006 and 0.004 deg off either way at a stated 0.0008
+    (their biases happened to cancel in the mean). What is hidden above full scale cannot
+    be told from the pixels: refused, naming the exposure."""
+    sc = random_side_scene(np.random.default_rng(5), "sample on holder")
+    with pytest.raises(VisionError, match=r"pole's edge at x 96 px is clipped .* exposure"):
+        measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
