@@ -215,3 +215,11 @@ def test_a_corpus_view_with_its_pole_at_full_scale_is_refused() -> None:
     sc = random_side_scene(np.random.default_rng(5), "sample on holder")
     with pytest.raises(VisionError, match=r"pole's edge at x 96 px is clipped .* exposure"):
         measure_tilt(sc.image, pole_roi_px=sc.pole_roi_px, sample_roi_px=sc.sample_roi_px)
+
+
+def test_a_pole_clipped_black_is_refused_asking_for_more_light() -> None:
+    """The same pole black instead (the frame inverted and 45 DN darker: the pole at 0,
+    the background at 60): the advice is the other way round."""
+    img = 255 - _bright_pole(250.0, 300.0, 0.0).astype(np.int16) - 45
+    with pytest.raises(VisionError, match=r"pole's edge .* clipped \(black .* raise the"):
+        measure_tilt(np.clip(img, 0, 255).astype(np.uint8), **_REGIONS)

@@ -678,25 +678,30 @@ def _each_profiled(gray: np.ndarray, edges: list[SideEdge], others: list[SideEdg
               if (p := _profiled(gray, e, others, roi, strict=True, line=line)) is not None]
     if fitted:
         return fitted
-    share = max(_clipped_share(gray, e) for e in edges)
+    share, e, bright = max(((_clipped_share(gray, e, b), e, b) for e in edges
+                            for b in (True, False)), key=lambda t: t[0])
     if share > _CLIPPED_SHARE:
         raise VisionError(
-            f"side image: the {what}'s edge at x {edges[0].x_mid_px:.0f} px is clipped (black "
-            f"or full scale beside it) in {100 * share:.0f} % of its rows, and cannot be "
-            "measured; lower the side camera's exposure or gain, or the light on the "
-            f"{what}")
+            f"side image: the {what}'s edge at x {e.x_mid_px:.0f} px is clipped "
+            f"({'full scale' if bright else 'black'} beside it) in {100 * share:.0f} % of its "
+            "rows, and cannot be measured; "
+            + ("lower the side camera's exposure or gain, or the light on the " if bright
+               else "raise the side camera's exposure or gain, or the light on the ")
+            + what)
     return edges
 
 
-def _clipped_share(gray: np.ndarray, e: SideEdge, half_width: int = 7) -> float:
-    """The share of the edge's rows with a pixel at black or full scale (0 or 255) within
-    ``half_width`` px of it."""
+def _clipped_share(gray: np.ndarray, e: SideEdge, bright: bool, half_width: int = 7
+                   ) -> float:
+    """The share of the edge's rows with a pixel at full scale (``bright``; 255) or black
+    (0) within ``half_width`` px of it."""
     h, w = gray.shape
     ys = np.arange(max(e.rows[0], 0), min(e.rows[1], h - 1) + 1)
     x = np.rint(e.line.minor_at(ys.astype(float))).astype(int)
     cols = np.clip(x[:, None] + np.arange(-half_width, half_width + 1)[None, :], 0, w - 1)
     px = gray[ys[:, None], cols]
-    return float(np.mean(((px <= 0.5) | (px >= 254.5)).any(axis=1))) if len(ys) else 0.0
+    hit = px >= 254.5 if bright else px <= 0.5
+    return float(np.mean(hit.any(axis=1))) if len(ys) else 0.0
 
 
 def _auto_sample(edges: list[SideEdge], pole: list[SideEdge], h: int,
