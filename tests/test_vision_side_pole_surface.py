@@ -177,7 +177,6 @@ def test_a_polished_poles_highlight_is_never_taken_for_an_edge_of_the_pole(
     assert m.tilt_deg == pytest.approx(sc.tilt_deg, abs=0.01)
 
 
-
 def test_a_pole_lost_beside_a_narrow_full_height_sample_is_refused_not_swapped() -> None:
     """Seed 20's first view: a faint pole (36 DN), defocused 1.4 px, its highlight 5 px
     inside its near edge, which only the second, fainter edge search finds; the sample, a

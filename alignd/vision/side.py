@@ -593,7 +593,15 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
                               f"{tuple(pole_roi_px)}")
         seen += pool
     edges: list[SideEdge] = []
-    faint_searched = False  # edges holds the lower thresholds' edges too
+    faint: list[list[SideEdge]] = []  # the lower thresholds' edges, once searched
+    faint_searched = False  # edges holds them too
+
+    def faint_edges() -> list[SideEdge]:
+        """The search with the lower thresholds, run once at most."""
+        if not faint:
+            faint.append(find_vertical_edges(image, min_contrast=min_contrast,
+                                             canny=FAINT_CANNY))
+        return faint[0]
     if pole_roi_px is None or sample_roi_px is None:
         edges = find_vertical_edges(image, min_contrast=min_contrast)
         if not edges:
@@ -609,14 +617,12 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
                 # a faint, defocused or shaded pole edge may not reach the coarse search's
                 # threshold: look again with a lower one
                 faint_searched = True
-                edges = _merge(edges, find_vertical_edges(image, min_contrast=min_contrast,
-                                                          canny=FAINT_CANNY))
+                edges = _merge(edges, faint_edges())
                 pole = _auto_pole(gray, edges, h, pole_min_fraction,
                                   max_pole_width_px or 0.1 * w)
             if pole:  # a pole edge the first search missed may show it is elsewhere
-                _no_narrower_bar(gray, edges if faint_searched else _merge(
-                    edges, find_vertical_edges(image, min_contrast=min_contrast,
-                                               canny=FAINT_CANNY)), pole, h,
+                _no_narrower_bar(gray, edges if faint_searched
+                                 else _merge(edges, faint_edges()), pole, h,
                                  pole_min_fraction)
         if pole_x_px is not None:
             pole = _pole_pair(pool, max_pole_width_px or 0.1 * w)
@@ -646,8 +652,7 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
             if faint_searched:
                 raise
             # a faint sample edge: look again with lower thresholds
-            edges = _merge(edges, find_vertical_edges(image, min_contrast=min_contrast,
-                                                      canny=FAINT_CANNY))
+            edges = _merge(edges, faint_edges())
             main, rest = _auto_sample(edges, pole, h, sample_x_px, max_edge_rms_px)
     sample = _partner(main, rest)
     others = [*edges, *seen, *pole, *sample]
