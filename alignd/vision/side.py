@@ -506,7 +506,7 @@ def _no_narrower_bar(gray: np.ndarray, edges: list[SideEdge], pole: list[SideEdg
     tilt was measured against the pole's own edge, the sign flipped (0.26 deg off)."""
     lo, hi = sorted(e.x_mid_px for e in pole)
     outside = [e for e in edges if not lo + 3 < e.x_mid_px < hi - 3]  # not its surface
-    try:
+    try:  # a tenth narrower at least: the bar taken, whose edges are among these, is not
         bar = _pole_runs(gray, outside, 0.9 * (hi - lo), h)
     except VisionError:  # two narrow bars side by side: not the pole taken either
         bar = []
