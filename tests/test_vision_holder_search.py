@@ -14,6 +14,13 @@ from drivers.sim.render import Polygon, Raster, coverage
 Cand = tuple[float, np.ndarray, str]
 
 
+def _votes(voted: list[Cand]) -> holder_search.FrameVotes:
+    """A frame's votes that give ``voted`` (the frame itself is never looked at)."""
+    votes = holder_search.FrameVotes(np.zeros((720, 1280), np.float32), (300.0, 160.0), 15.0)
+    votes.voted = lambda *a_, **k: voted  # type: ignore[method-assign]
+    return votes
+
+
 def _box(cx: float, cy: float, L: float = 300.0, S: float = 160.0, a: float = 7.0
          ) -> np.ndarray:
     return cv2.boxPoints(((cx, cy), (L, S), a)).astype(float)
@@ -55,13 +62,12 @@ def test_weak_voted_boxes_are_not_refined_and_the_ladder_follows(
     support (a peak in texture) is dropped, and the ladder's boxes come after the rest."""
     a, b, weak, d = _box(100, 100), _box(400, 100), _box(700, 100), _box(100, 400)
     voted: list[Cand] = [(100.0, a, "?"), (11.0, b, "?"), (9.0, weak, "?")]
-    monkeypatch.setattr(holder_search, "_vote_candidates", lambda *a_, **k: voted)
     monkeypatch.setattr(holder_search, "_candidates", lambda *a_, **k: [(1.0, d, "dark")])
     gray = np.zeros((720, 1280), np.float32)
-    got = list(holder_search.search_candidates(gray, (300.0, 160.0), None, 15.0, 0.12))
+    got = list(holder_search.search_candidates(gray, _votes(voted), (300.0, 160.0), None))
     assert [g.tolist() for g in got] == [a.tolist(), b.tolist(), d.tolist()]
-    # without an expected size the vote is not asked at all
-    got = list(holder_search.search_candidates(gray, None, None, 15.0, 0.12))
+    # without an expected size there are no votes
+    got = list(holder_search.search_candidates(gray, None, None, None))
     assert [g.tolist() for g in got] == [d.tolist()]
 
 
@@ -69,10 +75,9 @@ def test_voted_boxes_stop_at_max_voted_and_the_ladder_follows(
         monkeypatch: pytest.MonkeyPatch) -> None:
     a, b, c, d = _box(100, 100), _box(400, 100), _box(700, 100), _box(100, 400)
     voted: list[Cand] = [(100.0, a, "dark"), (90.0, b, "dark"), (80.0, c, "mixed")]
-    monkeypatch.setattr(holder_search, "_vote_candidates", lambda *a_, **k: voted)
     monkeypatch.setattr(holder_search, "_candidates", lambda *a_, **k: [(1.0, d, "dark")])
     gray = np.zeros((720, 1280), np.float32)
-    got = list(holder_search.search_candidates(gray, (300.0, 160.0), None, 15.0, 0.12,
+    got = list(holder_search.search_candidates(gray, _votes(voted), (300.0, 160.0), None,
                                                max_voted=2))
     assert [g.tolist() for g in got] == [a.tolist(), b.tolist(), d.tolist()]
 
@@ -128,10 +133,9 @@ def test_boxes_straddling_two_objects_are_refined_last(
     the holder: every box that could be comes first, the ladder's after all of them."""
     a, b, c, d = _box(100, 100), _box(400, 100), _box(700, 100), _box(100, 400)
     voted: list[Cand] = [(100.0, a, "mixed"), (80.0, b, "dark"), (50.0, c, "light")]
-    monkeypatch.setattr(holder_search, "_vote_candidates", lambda *a_, **k: voted)
     monkeypatch.setattr(holder_search, "_candidates", lambda *a_, **k: [(1.0, d, "dark")])
     gray = np.zeros((720, 1280), np.float32)
-    got = list(holder_search.search_candidates(gray, (300.0, 160.0), None, 15.0, 0.12))
+    got = list(holder_search.search_candidates(gray, _votes(voted), (300.0, 160.0), None))
     assert [g.tolist() for g in got] == [b.tolist(), c.tolist(), a.tolist(), d.tolist()]
 
 
@@ -140,7 +144,7 @@ def test_voted_box_knows_which_way_its_sides_contrast(invert: bool) -> None:
     img = _scene()
     if invert:
         img = 255 - img
-    voted = holder_search._vote_candidates(img.astype(np.float32), (300.0, 160.0), 15.0)
+    voted = holder_search.FrameVotes(img.astype(np.float32), (300.0, 160.0), 15.0).voted()
     _score, box, pol = voted[0]
     assert pol == ("light" if invert else "dark")
     truth = _box(520.3, 340.7)
@@ -205,7 +209,7 @@ def test_the_centre_is_where_both_midlines_vote() -> None:
     a bump on one midline alone (here the holes' pairs) no longer outranks the holder,
     which every voted box missed before (no holder found)."""
     img, held = _on_a_breadboard()
-    voted = holder_search._vote_candidates(img.astype(np.float32), (440.0, 190.0), 15.0)
+    voted = holder_search.FrameVotes(img.astype(np.float32), (440.0, 190.0), 15.0).voted()
     assert np.linalg.norm(voted[0][1].mean(axis=0) - held.mean(axis=0)) < 4.0
     det = track_holder(img, expected_size_px=(440.0, 190.0))
     assert det.ok, det.reason
@@ -237,10 +241,45 @@ def test_a_peaks_side_directions_from_its_own_voters(gap_px: float) -> None:
     from the edge pixels whose votes made it: the holder is found."""
     img, held = _beside_a_bright_rectangle(gap_px)
     gray = img.astype(np.float32)
-    first = holder_search._vote_candidates(gray, (378.0, 169.0), 15.0)[0][1]
+    votes = holder_search.FrameVotes(gray, (378.0, 169.0), 15.0)
+    first = votes.voted()[0][1]
     assert np.max(np.linalg.norm(order_corners(first, held) - held, axis=1)) > 100.0
-    again = holder_search.voted_by_voters(gray, (378.0, 169.0), 15.0, 0.12)[0]
+    again = holder_search.voted_by_voters(votes)[0]
     assert np.max(np.linalg.norm(order_corners(again, held) - held, axis=1)) < 4.0
     det = track_holder(img, expected_size_px=(378.0, 169.0))
     assert det.ok, det.reason
     assert np.max(np.linalg.norm(order_corners(det.corners_px, held) - held, axis=1)) < 0.1
+
+
+def test_a_frames_votes_again_reuse_its_edge_map_and_peaks(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A frame whose boxes all failed is voted again twice (the peaks' own directions,
+    sides paired either way): the edge map and the peaks are computed once, and each vote
+    gives the boxes a vote of its own would."""
+    img, _held = _beside_a_bright_rectangle(10.0)
+    gray = img.astype(np.float32)
+    size = (378.0, 169.0)
+    fresh = [holder_search.FrameVotes(gray, size, 15.0).voted(by_voters=bv, either_way=ew)
+             for bv, ew in ((False, False), (True, False), (False, True))]
+    votes = holder_search.FrameVotes(gray, size, 15.0)
+    pairings: list[bool] = []
+    partners = holder_search._partners
+
+    def counted(em: object, dist: np.ndarray, step: int = 1, either_way: bool = False
+                ) -> np.ndarray:
+        pairings.append(either_way)
+        return partners(em, dist, step, either_way)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(holder_search, "_partners", counted)
+    first = votes.voted()
+    n_first = len(pairings)
+    assert n_first > 0
+    again = votes.voted(by_voters=True)
+    assert len(pairings) == n_first  # no pairing, no scale, no peak computed again
+    either = votes.voted(either_way=True)
+    assert pairings[n_first:] and all(pairings[n_first:])  # only the either-way pairs
+    for got, ref in zip((first, again, either), fresh, strict=True):
+        assert len(got) == len(ref)
+        for (s1, b1, p1), (s2, b2, p2) in zip(got, ref, strict=True):
+            assert (s1, p1) == (s2, p2)
+            np.testing.assert_array_equal(b1, b2)

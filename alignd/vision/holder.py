@@ -59,6 +59,7 @@ from alignd.vision.holder_bands import SideProfiles, read_sides, side_bands
 from alignd.vision.holder_neighbours import REACH as NEIGHBOUR_REACH
 from alignd.vision.holder_neighbours import neighbour_steps, without_neighbours
 from alignd.vision.holder_search import (
+    FrameVotes,
     search_candidates,
     voted_by_voters,
     voted_either_way,
@@ -474,6 +475,9 @@ def _full_search(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
     tried: list[np.ndarray] = []  # the boxes refined, their corners ordered
     rough: list[np.ndarray] = []  # boxes refused for a side's scatter alone (second pass)
     last: HolderDetection | None = None
+    # the frame's centre voting, its edge map and peaks shared by the votes again below
+    votes = None if expected_size_px is None else FrameVotes(gray, expected_size_px,
+                                                             min_contrast, size_tolerance)
 
     def measure(box: np.ndarray, rms_px: float) -> HolderDetection:
         """``box`` refined and checked (VisionError where its sides cannot be located)."""
@@ -487,17 +491,15 @@ def _full_search(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
         voted again with their peaks' own directions, then with sides paired whichever way
         they contrast, those not refined yet."""
         yield from ((box, max_rms_px * _SECOND_RMS_FACTOR) for box in rough)
-        if expected_size_px is None:
+        if votes is None:
             return
         seen = list(tried)
         if tried:
-            for box in voted_by_voters(gray, expected_size_px, min_contrast, size_tolerance,
-                                       max_candidates):
+            for box in voted_by_voters(votes, max_candidates):
                 if not any(_shift(order_corners(box, b), b) < 8.0 for b in tried):
                     seen.append(order_corners(box))
                     yield box, max_rms_px
-        for box in voted_either_way(gray, expected_size_px, min_contrast, size_tolerance,
-                                    max_candidates):
+        for box in voted_either_way(votes, max_candidates):
             if not any(_shift(order_corners(box, b), b) < 8.0 for b in seen):
                 seen.append(order_corners(box))
                 yield box, max_rms_px
@@ -506,8 +508,8 @@ def _full_search(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
     # follow, a few more: where the holder's two sizes pair at different scales (a plate
     # beside one side, 5 % of the holder), its sides vote along one midline only, every
     # voted box lies somewhere along it, and the ladder's outline is the one there is
-    for box in search_candidates(gray, expected_size_px, polarity, min_contrast,
-                                 size_tolerance, max_voted=max_candidates):
+    for box in search_candidates(gray, votes, expected_size_px, polarity,
+                                 max_voted=max_candidates):
         ctr = box.mean(axis=0)
         if any(np.linalg.norm(ctr - t.mean(axis=0)) < 8.0 for t in tried):
             continue

@@ -1,7 +1,7 @@
 """Full search for the sample holder in a top-camera frame: approximate boxes to refine.
 
 Two candidate sources, the first preferred: with the expected size, centre voting of
-paired opposite edges at the holder's measured scale (:func:`_vote_candidates`, no
+paired opposite edges at the holder's measured scale (:class:`FrameVotes`, no
 threshold); then (and without an expected size, only) rectangular blobs over a ladder of
 thresholds of a 4x-downsampled frame (:func:`_candidates`). Both give boxes good to about a
 pixel at 1/4 scale; :mod:`alignd.vision.holder` refines them in turn (a refinement costs
@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -22,48 +23,41 @@ _DOWN = 4
 _MIN_SUPPORT_RATIO = 0.1  # a voted box this much weaker than the best is not refined
 
 
-def search_candidates(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
-                      polarity: str | None, min_contrast: float, size_tolerance: float,
+def search_candidates(gray: np.ndarray, votes: FrameVotes | None,
+                      expected_size_px: tuple[float, float] | None, polarity: str | None,
                       max_voted: int | None = None) -> Iterator[np.ndarray]:
     """Approximate boxes (4 corners, full-res px), the likeliest first: at most
-    ``max_voted`` voted ones, then the ladder's.
+    ``max_voted`` of the ``votes`` (the frame's, with the expected size), then the
+    ladder's.
 
     Lazy: the caller refines them in turn and stops at the first that passes, so the
     threshold ladder (about 5 ms) is only built when every voted box failed, or without
     an expected size. Voted boxes under a tenth of the best one's outline score are left
     out (peaks in texture; the corpus' holder never scored under 0.36 of the best).
     """
-    if expected_size_px is not None:
-        yield from _ranked(_vote_candidates(gray, expected_size_px, min_contrast,
-                                            size_tolerance=size_tolerance), max_voted)
+    if votes is not None:
+        yield from _ranked(votes.voted(), max_voted)
     for _score, box, _pol in _candidates(gray, expected_size_px, polarity):
         yield box
 
 
-def voted_by_voters(gray: np.ndarray, expected_size_px: tuple[float, float],
-                    min_contrast: float, size_tolerance: float, max_voted: int | None = None
-                    ) -> list[np.ndarray]:
+def voted_by_voters(votes: FrameVotes, max_voted: int | None = None) -> list[np.ndarray]:
     """The voted boxes again, each peak's side directions taken from the edge pixels whose
     votes made it rather than from every edge pixel around it: for a frame where every
     box of :func:`search_candidates` failed. Beside a holder of low contrast, a brighter
     object's edges (a second rectangle, a cable) outweigh its sides around its centre and
     turn its box; taken first, these directions changed frames found right (a box a
     degree elsewhere refines to other sides in a few), so they come second."""
-    return _ranked(_vote_candidates(gray, expected_size_px, min_contrast,
-                                    size_tolerance=size_tolerance, by_voters=True), max_voted)
+    return _ranked(votes.voted(by_voters=True), max_voted)
 
 
-def voted_either_way(gray: np.ndarray, expected_size_px: tuple[float, float],
-                     min_contrast: float, size_tolerance: float, max_voted: int | None = None
-                     ) -> list[np.ndarray]:
+def voted_either_way(votes: FrameVotes, max_voted: int | None = None) -> list[np.ndarray]:
     """The voted boxes with opposite sides paired whichever way their gradients point:
     for a frame where every other box failed. A holder between two levels, lighter than
     the disc and darker than a white sample beside it (or the other way round), has that
     side's gradient the same way as the side opposite it, so its sides along the sample
     never paired and its box was not voted at all."""
-    return _ranked(_vote_candidates(gray, expected_size_px, min_contrast,
-                                    size_tolerance=size_tolerance, either_way=True),
-                   max_voted)
+    return _ranked(votes.voted(either_way=True), max_voted)
 
 
 def _ranked(voted: list[tuple[float, np.ndarray, str]], max_voted: int | None
@@ -241,11 +235,23 @@ class _EdgeMap:
     near_edge: np.ndarray  # edge pixels grown by 1 px
 
 
-def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
-                     min_contrast: float, max_peaks: int = 12, size_tolerance: float = 0.12,
-                     by_voters: bool = False, either_way: bool = False
-                     ) -> list[tuple[float, np.ndarray, str]]:
-    """Rectangles of the expected size found by centre voting, threshold-ladder free.
+@dataclass(frozen=True)
+class _Peaks:
+    """The votes at one size and the peaks they make: which edge pixel (``ei``) voted
+    which way (``di``, an index into the four half sides) for where (``cx``, ``cy``), the
+    peaks' centres and, per peak, the edge pixels near enough to be its outline."""
+
+    ei: np.ndarray
+    di: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    ctrs: np.ndarray  # (P, 2)
+    near: np.ndarray  # (P, N) bool
+
+
+class FrameVotes:
+    """Rectangles of the expected size found by centre voting, threshold-ladder free, in
+    one frame at one minimum contrast.
 
     At 1/4 scale every significant gradient pixel (beyond 4 noise sigma and twice the
     minimum contrast, thinned by non-maximum suppression) that has a partner edge a whole
@@ -261,33 +267,67 @@ def _vote_candidates(gray: np.ndarray, expected_size_px: tuple[float, float],
     around it (``by_voters``: of the edge pixels whose votes made it), and the long side is
     the assignment whose outline has the stronger gradient. ``either_way``: a partner's
     gradient may point either way (:func:`voted_either_way`).
+
+    The edge map, the scales and the peaks are computed once: a frame whose boxes all
+    failed votes again, with the peaks' own directions and with sides paired either way,
+    and each vote computed them anew (a third of such a frame's search).
     """
-    h, w = gray.shape
-    small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
-    small = cv2.GaussianBlur(small, (0, 0), 0.8)
-    gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3)
-    mag = cv2.magnitude(gx, gy)
-    # significant (4 noise sigma, a Sobel step response of the minimum contrast) and thin
-    # (Canny's non-maximum suppression): shading and texture do not vote
-    thr = max(4.0 * _noise_sigma(small) * math.sqrt(12.0), 2.0 * min_contrast)
-    edges = cv2.Canny(np.clip(gx * 4, -32767, 32767).astype(np.int16),
-                      np.clip(gy * 4, -32767, 32767).astype(np.int16), 4 * thr, 8 * thr,
-                      L2gradient=True)
-    ys, xs = np.nonzero(edges)
-    if xs.size < 20:
-        return []
-    m = mag[ys, xs]
-    em = _EdgeMap(xs, ys, gx[ys, xs] / m, gy[ys, xs] / m, m, gx, gy,
-                  cv2.dilate(edges, np.ones((3, 3), np.uint8)) > 0)
-    eL, eS = max(expected_size_px) / _DOWN, min(expected_size_px) / _DOWN
-    out = []
-    scales = _pair_scales(em, (eS, eL), size_tolerance, either_way)
-    for scale in scales:  # as many peaks in all as one size had
-        out += _vote_at_size(em, eL * scale, eS * scale, max_peaks // len(scales), by_voters,
-                             either_way)
-    out.sort(key=lambda t: -t[0])
-    return out
+
+    def __init__(self, gray: np.ndarray, expected_size_px: tuple[float, float],
+                 min_contrast: float, size_tolerance: float = 0.12) -> None:
+        self._gray = gray
+        self._long = max(expected_size_px) / _DOWN
+        self._short = min(expected_size_px) / _DOWN
+        self._min_contrast = min_contrast
+        self._tolerance = size_tolerance
+        self._scales: dict[bool, list[float]] = {}
+        self._peaks: dict[tuple[float, bool, int], _Peaks | None] = {}
+
+    @cached_property
+    def _edges(self) -> _EdgeMap | None:
+        """The frame's edge map, or None where it has too few edge pixels to vote."""
+        gray = self._gray
+        h, w = gray.shape
+        small = cv2.resize(gray, (w // _DOWN, h // _DOWN), interpolation=cv2.INTER_AREA)
+        small = cv2.GaussianBlur(small, (0, 0), 0.8)
+        gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3)
+        gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3)
+        mag = cv2.magnitude(gx, gy)
+        # significant (4 noise sigma, a Sobel step response of the minimum contrast) and
+        # thin (Canny's non-maximum suppression): shading and texture do not vote
+        thr = max(4.0 * _noise_sigma(small) * math.sqrt(12.0), 2.0 * self._min_contrast)
+        edges = cv2.Canny(np.clip(gx * 4, -32767, 32767).astype(np.int16),
+                          np.clip(gy * 4, -32767, 32767).astype(np.int16), 4 * thr, 8 * thr,
+                          L2gradient=True)
+        ys, xs = np.nonzero(edges)
+        if xs.size < 20:
+            return None
+        m = mag[ys, xs]
+        return _EdgeMap(xs, ys, gx[ys, xs] / m, gy[ys, xs] / m, m, gx, gy,
+                        cv2.dilate(edges, np.ones((3, 3), np.uint8)) > 0)
+
+    def voted(self, max_peaks: int = 12, by_voters: bool = False, either_way: bool = False
+              ) -> list[tuple[float, np.ndarray, str]]:
+        """(outline score, 4 corners in full-res px, polarity) of each voted box, the
+        best first."""
+        em = self._edges
+        if em is None:
+            return []
+        if either_way not in self._scales:
+            self._scales[either_way] = _pair_scales(em, (self._short, self._long),
+                                                    self._tolerance, either_way)
+        scales = self._scales[either_way]
+        out = []
+        for scale in scales:  # as many peaks in all as one size had
+            eL, eS = self._long * scale, self._short * scale
+            key = (scale, either_way, max_peaks // len(scales))
+            if key not in self._peaks:
+                self._peaks[key] = _peaks_at_size(em, eL, eS, key[2], either_way)
+            peaks = self._peaks[key]
+            if peaks is not None:
+                out += _boxes_at_peaks(em, peaks, eL, eS, by_voters)
+        out.sort(key=lambda t: -t[0])
+        return out
 
 
 def _partners(em: _EdgeMap, dist: np.ndarray, step: int = 1, either_way: bool = False
@@ -341,14 +381,16 @@ def _pair_scales(em: _EdgeMap, sides: tuple[float, float], tolerance: float,
     return [float(grid[k]), 1.0]
 
 
-def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int, by_voters: bool = False,
-                  either_way: bool = False) -> list[tuple[float, np.ndarray, str]]:
-    """Centre voting (see :func:`_vote_candidates`) for a holder of eL x eS (1/4-scale px).
+def _peaks_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int,
+                   either_way: bool = False) -> _Peaks | None:
+    """Centre voting (see :class:`FrameVotes`) for a holder of eL x eS (1/4-scale px): its
+    peaks, or None where there is none.
 
-    Every peak is handled at once (one distance matrix, one histogram, one remap of all
-    outlines): a loop over the peaks cost more in numpy calls than in arithmetic.
+    Every peak is handled at once (one distance matrix, one histogram, and in
+    :func:`_boxes_at_peaks` one remap of all outlines): a loop over the peaks cost more in
+    numpy calls than in arithmetic.
     """
-    xs, ys, nx, ny, m = em.xs, em.ys, em.nx, em.ny, em.mag
+    xs, ys, nx, ny = em.xs, em.ys, em.nx, em.ny
     sh, sw = em.near_edge.shape
     # only where the opposite side is there too: an edge a whole side away, its gradient
     # the other way (a circle, a single edge or another size does not pair)
@@ -372,19 +414,28 @@ def _vote_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int, by_voters:
     r_max = math.hypot(eL, eS) / 2 + 3
     near = ((xs[None] - ctrs[:, :1]) ** 2 + (ys[None] - ctrs[:, 1:]) ** 2) <= r_max ** 2
     keep = near.sum(axis=1) >= 10
-    ctrs, near = ctrs[keep], near[keep]
+    if not np.any(keep):
+        return None
+    return _Peaks(ei, di, cx, cy, ctrs[keep], near[keep])
+
+
+def _boxes_at_peaks(em: _EdgeMap, peaks: _Peaks, eL: float, eS: float,
+                    by_voters: bool = False) -> list[tuple[float, np.ndarray, str]]:
+    """The box of eL x eS (1/4-scale px) at each peak: its side directions and long side
+    (see :class:`FrameVotes`), as (outline score, 4 corners in full-res px, polarity)."""
+    nx, ny, m = em.nx, em.ny, em.mag
+    ctrs, near = peaks.ctrs, peaks.near
     n_p = len(ctrs)
-    if n_p == 0:
-        return []
     # the side directions: the dominant gradient orientation (mod 90 deg) around each peak
     # (by_voters: of the edge pixels whose votes landed within 2.5 px of it; all around a
     # peak with none)
     theta_px = np.degrees(np.arctan2(ny, nx)) % 90.0
     if by_voters:
+        cx, cy = peaks.cx, peaks.cy
         voter = ((cx[None] - ctrs[:, :1]) ** 2 + (cy[None] - ctrs[:, 1:]) ** 2) <= 2.5 ** 2
         pv, vi = np.nonzero(voter)
         pn, nn = np.nonzero(near & ~np.any(voter, axis=1)[:, None])
-        pi, ni = np.concatenate([pv, pn]), np.concatenate([ei[vi], nn])
+        pi, ni = np.concatenate([pv, pn]), np.concatenate([peaks.ei[vi], nn])
     else:
         pi, ni = np.nonzero(near)
     th, wt = theta_px[ni], m[ni]
