@@ -237,12 +237,11 @@ class _EdgeMap:
 
 @dataclass(frozen=True)
 class _Peaks:
-    """The votes at one size and the peaks they make: which edge pixel (``ei``) voted
-    which way (``di``, an index into the four half sides) for where (``cx``, ``cy``), the
-    peaks' centres and, per peak, the edge pixels near enough to be its outline."""
+    """The votes at one size and the peaks they make: which edge pixel (``ei``) voted for
+    where (``cx``, ``cy``), the peaks' centres and, per peak, the edge pixels near enough
+    to be its outline."""
 
     ei: np.ndarray
-    di: np.ndarray
     cx: np.ndarray
     cy: np.ndarray
     ctrs: np.ndarray  # (P, 2)
@@ -416,7 +415,7 @@ def _peaks_at_size(em: _EdgeMap, eL: float, eS: float, max_peaks: int,
     keep = near.sum(axis=1) >= 10
     if not np.any(keep):
         return None
-    return _Peaks(ei, di, cx, cy, ctrs[keep], near[keep])
+    return _Peaks(ei, cx, cy, ctrs[keep], near[keep])
 
 
 def _boxes_at_peaks(em: _EdgeMap, peaks: _Peaks, eL: float, eS: float,
