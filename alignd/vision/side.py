@@ -689,10 +689,8 @@ def _each_profiled(gray: np.ndarray, edges: list[SideEdge], others: list[SideEdg
         raise VisionError(
             f"side image: the {what}'s edge at x {e.x_mid_px:.0f} px is clipped "
             f"({'full scale' if bright else 'black'} beside it) in {100 * share:.0f} % of its "
-            "rows, and cannot be measured; "
-            + ("lower the side camera's exposure or gain, or the light on the " if bright
-               else "raise the side camera's exposure or gain, or the light on the ")
-            + what)
+            f"rows, and cannot be measured; {'lower' if bright else 'raise'} the side "
+            f"camera's exposure or gain, or the light on the {what}")
     return edges
 
 
