@@ -14,7 +14,7 @@ from procedures_support import scene_rig, sim_config
 
 from alignd.config import AligndConfig
 from alignd.procedures.commission import CommissionRecord, run_commission
-from alignd.procedures.tools import CameraInfo, Tools
+from alignd.procedures.tools import CameraInfo, RimInfo, Tools
 from alignd.simulated import standin_tools
 from drivers.camera import Frame
 from drivers.sim.world import World
@@ -301,3 +301,54 @@ def test_an_abort_during_the_camera_check_aborts_the_commission() -> None:
     rec = run_commission(rig, cfg, tools=tools, abort=abort)
     assert rec.verdict == "aborted", rec.reason
     assert rec.finding("top.frames") is None
+
+
+def _rim_tool(u: float) -> Callable[[list[Frame], float | None, float | None], RimInfo]:
+    """A rim fit that reads e = 0.02 +- ``u`` whatever the frames."""
+    def rim(frames: list[Frame], radius: float | None, height: float | None) -> RimInfo:
+        return RimInfo((640.0, 360.0), 0.02, None, u)
+
+    return rim
+
+
+@pytest.mark.parametrize(("u", "turn", "verdict", "fix"), [
+    (0.0004, 0.0, "pass", None),
+    (0.0030, 0.0, "warn", {"procedure.precheck.rim_turn_deg": 22.5}),
+    (0.0030, 22.5, "warn", None),
+])
+def test_an_uncertain_rim_warns_and_names_what_makes_it_certain(
+        u: float, turn: float, verdict: str, fix: dict[str, float] | None) -> None:
+    """e less certain than 0.001 (a third of the 0.003 the vision holds it to) is a
+    warning: from still frames with the fix that averages a disc's texture (the disc
+    turned 180 / rim_frames deg between them); from turned frames with what is left to
+    the lab. A certain e passes with no fix."""
+    import dataclasses
+
+    base = sim_config()
+    cfg = sim_config(precheck=base.procedure.precheck.model_copy(update={"rim_turn_deg": turn}))
+    rig, _world = scene_rig(cfg, 2)
+    tools = dataclasses.replace(image_order_tools(2), rim=_rim_tool(u))
+    rec = run_commission(rig, cfg, tools=tools, abort=threading.Event())
+    assert rec.verdict == "commissioned", rec.reason
+    f = rec.finding("top.rim")
+    assert f is not None and f.verdict == verdict and f.config_fix == fix, f.message
+    assert f.sigma == {"eccentricity": u}
+    if verdict == "warn":
+        assert f.name == "uncertain" and "uncertain to more than 0.001" in f.message
+        assert ("rim_turn_deg 22.5" in f.message) == (not turn)
+        assert ("wider rim" in f.message) == bool(turn)
+
+
+def test_rim_advice_keeps_the_turn_inside_the_soft_limits() -> None:
+    from alignd.procedures.commission import rim_advice
+
+    # 8 frames in +-40 deg: 80 / 7 = 11.4 deg a step, not 22.5
+    text, fix = rim_advice(8, 0.0, -40.0, 40.0)
+    assert fix == {"procedure.precheck.rim_turn_deg": 11.4} and "about 79.8 deg" in text
+    # +-10 deg leaves 2.8 deg a step: too little to average a texture, no turn offered
+    text, fix = rim_advice(8, 0.0, -10.0, 10.0)
+    assert fix is None and "soft limits [-10, 10] leave too little turn" in text
+    # one frame: more frames first
+    assert rim_advice(1, 0.0, -169.0, 169.0)[1] == {"procedure.precheck.rim_frames": 8}
+    # 4 frames: 45 deg, the config's largest step
+    assert rim_advice(4, 0.0, -169.0, 169.0)[1] == {"procedure.precheck.rim_turn_deg": 45.0}

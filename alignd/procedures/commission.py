@@ -116,6 +116,42 @@ class Finding:
                 "config_fix": _plain(self.config_fix), "name": self.name}
 
 
+# e's standard uncertainty above which commissioning's rim item warns: a third of the 0.003
+# the vision holds e to (docs/vision.md, Rim), so that e within 3 u supports that bound
+RIM_U_CERTAIN = 0.001
+MIN_RIM_TURN_DEG = 5.0  # a turn between rim frames below this averages little of a texture
+
+
+def rim_advice(frames: int, turn_deg: float, lim_min: float, lim_max: float
+               ) -> tuple[str, dict[str, Any] | None]:
+    """What makes the rim pre-check's e more certain, and the config keys that do it.
+
+    One frame: more frames (noise). Still frames: the disc turned between them, 180 /
+    ``frames`` deg (it cancels a texture's second harmonic, what moves e), or the most
+    the turntable's soft limits hold. What is left to a lab: a wider rim in view or a
+    smoother disc."""
+    if frames < 2:
+        return ("average more frames (procedure.precheck.rim_frames 8: one frame's noise "
+                "is most of e's uncertainty at small e)",
+                {"procedure.precheck.rim_frames": 8})
+    if turn_deg <= 0:
+        step = math.floor(10 * min(180.0 / frames, 45.0,
+                                   (lim_max - lim_min) / (frames - 1))) / 10
+        if step >= MIN_RIM_TURN_DEG:
+            return (f"still frames share the disc's texture and a still view's JPEG "
+                    f"coding, which their mean keeps; turning the disc {step:g} deg between "
+                    f"the {frames} frames averages them out (procedure.precheck."
+                    f"rim_turn_deg {step:g}; about {step * (frames - 1):g} deg out and back "
+                    "before each run; more rim_frames help where the frames' noise is what "
+                    "is left)", {"procedure.precheck.rim_turn_deg": step})
+        return (f"the turntable's soft limits [{lim_min:g}, {lim_max:g}] leave too little "
+                f"turn to average a textured disc over {frames} frames; a wider rim in "
+                "the image or a smoother disc", None)
+    return ("with the disc turned between the frames, what is left is the rim's own edge: "
+            "a wider rim in the image (e's error falls as 1 / its radius squared), more "
+            "light on it, or a smoother disc", None)
+
+
 def _plain(v: Any) -> Any:
     """JSON-ready: numpy to Python, tuples to lists, non-finite floats to None."""
     if isinstance(v, np.ndarray):
@@ -523,15 +559,23 @@ class _Commission:
         verdict: FindingVerdict = "pass" if info.eccentricity <= e_max else "fail"
         zen = "" if info.zenith_deg is None else f", camera zenith {info.zenith_deg:.2f} deg"
         u = "" if info.eccentricity_u is None else f" +- {info.eccentricity_u:.4f}"
+        advice, fix = "", None
+        if info.eccentricity_u is not None and info.eccentricity_u > RIM_U_CERTAIN:
+            lim = self.rig.axis("turntable").config.soft_limits
+            advice, fix = rim_advice(pc.rim_frames, pc.rim_turn_deg, lim.min, lim.max)
+            advice = (f"; e is uncertain to more than {RIM_U_CERTAIN:g}: {advice}")
+            if verdict == "pass":
+                verdict = "warn"
         self._add(Finding("top.rim", verdict,
                           f"rim eccentricity {info.eccentricity:.4f}{u} (limit {e_max:g}; mean "
-                          f"of {len(frames)} frames{turned}){zen}",
+                          f"of {len(frames)} frames{turned}){zen}{advice}",
                           value={"eccentricity": info.eccentricity,
                                  "zenith_deg": info.zenith_deg,
                                  "center_px": info.center_px},
                           sigma={"eccentricity": info.eccentricity_u},
-                          expected={"max_eccentricity": e_max},
-                          name="" if verdict == "pass" else "camera not on the axis"))
+                          expected={"max_eccentricity": e_max}, config_fix=fix,
+                          name="camera not on the axis" if verdict == "fail"
+                          else "uncertain" if verdict == "warn" else ""))
 
     def _camera_check(self, role: Literal["top", "side"], cam: Camera, n: int
                       ) -> list[Frame]:
