@@ -138,18 +138,20 @@ def rim_advice(frames: int, turn_deg: float, lim_min: float, lim_max: float
         step = math.floor(10 * min(180.0 / frames, 45.0,
                                    (lim_max - lim_min) / (frames - 1))) / 10
         if step >= MIN_RIM_TURN_DEG:
-            return (f"still frames share the disc's texture and a still view's JPEG "
-                    f"coding, which their mean keeps; turning the disc {step:g} deg between "
-                    f"the {frames} frames averages them out (procedure.precheck."
-                    f"rim_turn_deg {step:g}; about {step * (frames - 1):g} deg out and back "
-                    "before each run; more rim_frames help where the frames' noise is what "
-                    "is left)", {"procedure.precheck.rim_turn_deg": step})
+            return (f"what still frames share (the disc's texture, a still view's JPEG "
+                    f"coding) their mean keeps; turning the disc {step:g} deg between the "
+                    f"{frames} frames averages it out (procedure.precheck.rim_turn_deg "
+                    f"{step:g}: the turntable then goes about {step * (frames - 1):g} deg out "
+                    "and back before each run); more rim_frames help where the frames' "
+                    "noise is what is left", {"procedure.precheck.rim_turn_deg": step})
         return (f"the turntable's soft limits [{lim_min:g}, {lim_max:g}] leave too little "
-                f"turn to average a textured disc over {frames} frames; a wider rim in "
-                "the image or a smoother disc", None)
-    return ("with the disc turned between the frames, what is left is the rim's own edge: "
-            "a wider rim in the image (e's error falls as 1 / its radius squared), more "
-            "light on it, or a smoother disc", None)
+                f"turn to average a textured disc over {frames} frames; a smoother disc, a "
+                "wider rim in the image, or more rim_frames where the frames' noise is what "
+                "is left", None)
+    return ("the disc turned between the frames averages its texture; what is left is the "
+            "frames' noise and the rim's own edge: more rim_frames, more light or contrast "
+            "on the rim, a wider rim in the image (e's error falls as 1 / its radius "
+            "squared), or less of it hidden", None)
 
 
 def _plain(v: Any) -> Any:
