@@ -303,40 +303,53 @@ def test_an_abort_during_the_camera_check_aborts_the_commission() -> None:
     assert rec.finding("top.frames") is None
 
 
-def _rim_tool(u: float) -> Callable[[list[Frame], float | None, float | None], RimInfo]:
-    """A rim fit that reads e = 0.02 +- ``u`` whatever the frames."""
+def _rim_tool(u_still: float, u_turned: float
+              ) -> Callable[[list[Frame], float | None, float | None], RimInfo]:
+    """A rim fit that reads e = 0.02 +- ``u_still`` from frames taken where the
+    turntable stood and +- ``u_turned`` from frames turned apart."""
     def rim(frames: list[Frame], radius: float | None, height: float | None) -> RimInfo:
-        return RimInfo((640.0, 360.0), 0.02, None, u)
+        angles = [float(f.metadata["turntable_deg_true"]) for f in frames]
+        return RimInfo((640.0, 360.0), 0.02, None,
+                       u_turned if np.ptp(angles) > 1.0 else u_still)
 
     return rim
 
 
 @pytest.mark.parametrize(("u", "turn", "verdict", "fix"), [
-    (0.0004, 0.0, "pass", None),
-    (0.0030, 0.0, "warn", {"procedure.precheck.rim_turn_deg": 22.5}),
-    (0.0030, 22.5, "warn", None),
+    ((0.0004, 0.0004), 0.0, "pass", None),
+    ((0.0030, 0.0006), 0.0, "warn", {"procedure.precheck.rim_turn_deg": 22.5}),
+    ((0.0030, 0.0028), 0.0, "warn", None),
+    ((0.0030, 0.0030), 22.5, "warn", None),
 ])
 def test_an_uncertain_rim_warns_and_names_what_makes_it_certain(
-        u: float, turn: float, verdict: str, fix: dict[str, float] | None) -> None:
+        u: tuple[float, float], turn: float, verdict: str, fix: dict[str, float] | None
+        ) -> None:
     """e less certain than 0.001 (a third of the 0.003 the vision holds it to) is a
-    warning: from still frames with the fix that averages a disc's texture (the disc
-    turned 180 / rim_frames deg between them); from turned frames with what is left to
-    the lab. A certain e passes with no fix."""
+    warning. From still frames the rim is measured again with the disc turned 180 /
+    rim_frames deg between the frames, and that turn is the fix where it made e clearly
+    more certain (a disc's texture); where it did not, or the frames were turned already,
+    the warning says what is left to the lab. A certain e passes with no fix and no
+    turn."""
     import dataclasses
 
     base = sim_config()
     cfg = sim_config(precheck=base.procedure.precheck.model_copy(update={"rim_turn_deg": turn}))
     rig, _world = scene_rig(cfg, 2)
-    tools = dataclasses.replace(image_order_tools(2), rim=_rim_tool(u))
+    tools = dataclasses.replace(image_order_tools(2), rim=_rim_tool(*u))
     rec = run_commission(rig, cfg, tools=tools, abort=threading.Event())
     assert rec.verdict == "commissioned", rec.reason
     f = rec.finding("top.rim")
     assert f is not None and f.verdict == verdict and f.config_fix == fix, f.message
-    assert f.sigma == {"eccentricity": u}
+    retried = verdict == "warn" and not turn
+    assert f.sigma == {"eccentricity": u[0]} | (
+        {"eccentricity_turned": u[1]} if retried else {}), f.sigma
     if verdict == "warn":
         assert f.name == "uncertain" and "uncertain to more than 0.001" in f.message
-        assert ("rim_turn_deg 22.5" in f.message) == (not turn)
-        assert ("wider rim" in f.message) == bool(turn)
+    if retried:
+        assert f"turned 22.5 deg apart here, e reads 0.0200 +- {u[1]:.4f}" in f.message
+        assert ("no more certain" in f.message) == (fix is None)
+    if turn:
+        assert "averages its texture" in f.message and "more rim_frames" in f.message
 
 
 def test_rim_advice_keeps_the_turn_inside_the_soft_limits() -> None:
