@@ -123,6 +123,9 @@ MIN_RIM_TURN_DEG = 5.0  # a turn between rim frames below this averages little o
 # the turn is advised where e from turned frames is at least this much more certain: a
 # texture's share goes (2324 #64: 0.0012 -> 0.0008-0.0009, docs/vision.md), noise's does not move
 RIM_TURN_GAIN = 0.85
+# what makes e more certain once a disc's texture is averaged (or was not what limited it)
+RIM_LEFT = ("more rim_frames, more light or contrast on the rim, a wider rim in the image "
+            "(e's error falls as 1 / its radius squared), or less of it hidden")
 
 
 def rim_advice(frames: int, turn_deg: float, lim_min: float, lim_max: float
@@ -152,9 +155,7 @@ def rim_advice(frames: int, turn_deg: float, lim_min: float, lim_max: float
                 "wider rim in the image, or more rim_frames where the frames' noise is what "
                 "is left", None)
     return ("the disc turned between the frames averages its texture; what is left is the "
-            "frames' noise and the rim's own edge: more rim_frames, more light or contrast "
-            "on the rim, a wider rim in the image (e's error falls as 1 / its radius "
-            "squared), or less of it hidden", None)
+            f"frames' noise and the rim's own edge: {RIM_LEFT}", None)
 
 
 def _plain(v: Any) -> Any:
@@ -603,16 +604,15 @@ class _Commission:
         except AbortRequested:
             raise
         except AligndError as exc:
-            return f"{advice}; with the disc turned {step:g} deg apart: not measurable ({exc})", \
-                None, None
+            return (f"{advice}; with the disc turned {step:g} deg apart: not measurable "
+                    f"({exc})", None, None)
         u2 = tried.eccentricity_u
         read = (f"turned {step:g} deg apart here, e reads {tried.eccentricity:.4f}"
                 + ("" if u2 is None else f" +- {u2:.4f}"))
         if u2 is not None and u2 <= RIM_TURN_GAIN * u:
             return f"{advice}; {read}", fix, tried
-        return (f"{read}, no more certain: the frames' noise or the rim's own edge limits it "
-                "(more rim_frames, more light or contrast on the rim, a wider rim in the "
-                "image, less of it hidden)", None, tried)
+        return (f"{read}, no more certain: the frames' noise or the rim's own edge limits "
+                f"it: {RIM_LEFT}", None, tried)
 
     def _camera_check(self, role: Literal["top", "side"], cam: Camera, n: int
                       ) -> list[Frame]:
