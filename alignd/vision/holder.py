@@ -915,9 +915,10 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             if det.ok and not why and det3.ok:
                 # two estimates of the corners disagree and which of them errs is not
                 # known (the area method errs as well under a steep light or a soft
-                # side's overflowing window: 10 of 10 such corpus holders were nearer the
-                # refined corners, 0.2-0.7 px off on these): half the difference counts
-                # in the corners' uncertainty, as a band's move does (_off_the_bands)
+                # side's overflowing window: 10 of 10 such corpus holders, their kept
+                # corners 0.2-0.7 px off, were nearer the refined ones): half the
+                # difference counts in the corners' uncertainty, as a band's move does
+                # (_off_the_bands)
                 det = replace(det, corner_sigma_px=math.hypot(
                     det.corner_sigma_px, _DISAGREE_SHARE * _shift(det3.corners_px,
                                                                   det.corners_px)))
