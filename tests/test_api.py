@@ -400,6 +400,7 @@ def test_without_so_peergroups_only_the_primary_group_counts(
 
 
 def test_deeply_nested_body_is_a_400_not_a_crash(env: Env) -> None:
+    wait_until(lambda: env.daemon.state == "idle")  # the last request starts a run
     deep = b"[" * 30000 + b"]" * 30000
     reply = raw(env.sock, _post("/align", deep))
     assert reply.startswith(b"HTTP/1.1 400 ") and b"nested 30000 levels deep" in reply
