@@ -72,7 +72,8 @@ def top_camera(cfg: SimWorldConfig, height_mm: float = 800.0,
     d = rot[:, 2]
     center = (height_mm / -d[2]) * -d
     return PinholeCamera(center_mm=center, rot=rot, focal_px=f,
-                         principal_px=(float(cfg.axis_px[0]), float(cfg.axis_px[1])))
+                         principal_px=(float(cfg.axis_px[0]), float(cfg.axis_px[1])),
+                         size_px=cfg.top_frame_px)
 
 
 @dataclass(frozen=True)
