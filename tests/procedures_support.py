@@ -3,6 +3,7 @@ stand-in measuring tools (the world's projected corners plus seeded noise, real 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -10,10 +11,10 @@ import numpy as np
 
 from alignd import solve as solver
 from alignd.config import AligndConfig, load_config
-from alignd.procedures import Rig, Tools
+from alignd.procedures import MemoryRecorder, Rig, RunResult, Tools, run_alignment
 from alignd.procedures.runout import RunoutMap
 from alignd.procedures.sweep import sweep_runout
-from alignd.procedures.tools import Corners, as_corners
+from alignd.procedures.tools import Corners, as_corners, default_tools
 from alignd.simulated import build_direct_rig
 from drivers.camera import Frame
 from drivers.sim.direct import scene_tracker
@@ -27,6 +28,20 @@ def sim_config(**procedure: Any) -> AligndConfig:
     if procedure:
         cfg = cfg.model_copy(update={"procedure": cfg.procedure.model_copy(update=procedure)})
     return cfg
+
+
+def aligned_by_vision(cfg: AligndConfig, seed: int,
+                      recorder: MemoryRecorder | None = None) -> RunResult:
+    """A whole alignment with the real vision on the rendered rig: it must end "aligned"
+    with the simulator's truth within U of the measured offset."""
+    rig, _ = build_direct_rig(cfg, seed=seed)
+    res = run_alignment(rig, cfg, tools=default_tools(cfg), recorder=recorder)
+    assert res.verdict == "aligned", res.reason
+    out = res.to_json()
+    truth = out["truth"]["offset_um"]
+    assert math.hypot(out["offset_um"][0] - truth[0], out["offset_um"][1] - truth[1]) \
+        <= out["U_um"]
+    return res
 
 
 def scene_rig(cfg: AligndConfig, seed: int, **kw: Any) -> tuple[Rig, World]:

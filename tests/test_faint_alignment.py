@@ -9,13 +9,11 @@ uncertainty and warns that the holder is faint.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
+from procedures_support import aligned_by_vision
+
 from alignd.config import load_config
-from alignd.procedures import MemoryRecorder, run_alignment
-from alignd.procedures.tools import default_tools
-from alignd.simulated import build_direct_rig
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -25,13 +23,6 @@ def test_a_faint_holder_aligns_and_the_run_says_it_is_faint() -> None:
     assert cfg.sim is not None
     world = cfg.sim.world.model_copy(update={"holder_dn": 177.0})
     cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"world": world})})
-    rig, _ = build_direct_rig(cfg, seed=1)
-    res = run_alignment(rig, cfg, tools=default_tools(cfg), recorder=MemoryRecorder())
-    assert res.verdict == "aligned", res.reason
-    out = res.to_json()
-    truth = out["truth"]["offset_um"]
-    assert math.hypot(out["offset_um"][0] - truth[0], out["offset_um"][1] - truth[1]) \
-        <= out["U_um"]
-    warnings = res.details["warnings"]
+    warnings = aligned_by_vision(cfg, 1).details["warnings"]
     assert any(w.startswith("pre-check: top camera: the holder was found only by a second "
                             "search") for w in warnings), warnings

@@ -10,14 +10,13 @@ the measured offset is within the tolerance, and the truth lies within U of it).
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import pytest
+from procedures_support import aligned_by_vision
 
 from alignd.config import AligndConfig, load_config
-from alignd.procedures import MemoryRecorder, run_alignment
-from alignd.procedures.tools import default_tools
+from alignd.procedures import MemoryRecorder
 from alignd.simulated import build_direct_rig
 from alignd.vision.jpeg_bias import jpeg_quality
 
@@ -43,13 +42,7 @@ def test_the_simulated_cameras_code_their_frames() -> None:
 @pytest.mark.parametrize("quality", [60])
 def test_mjpeg_frames_align(quality: int) -> None:
     cfg = _config(quality)
-    rig, _ = build_direct_rig(cfg, seed=2)
     rec = MemoryRecorder()
-    res = run_alignment(rig, cfg, tools=default_tools(cfg), recorder=rec)
-    assert res.verdict == "aligned", res.reason
-    out = res.to_json()
-    truth = out["truth"]["offset_um"]
-    assert math.hypot(out["offset_um"][0] - truth[0], out["offset_um"][1] - truth[1]) \
-        <= out["U_um"]
+    out = aligned_by_vision(cfg, 2, rec).to_json()
     assert out["tilt_deg"] == pytest.approx(cfg.sim.world.tilt_deg, abs=0.003)  # type: ignore[union-attr]
     assert any(f"JPEG-coded frames, quality {quality}" in e for e in rec.events)
