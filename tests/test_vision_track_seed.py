@@ -104,11 +104,8 @@ def test_an_unconfirmed_seed_is_measured_again_from_the_coarse_search(
     frame #39 of seed 2124, JPEG q71, its sides' directions left free: the full search
     kept the area method's corners, 0.35 px off; tracked on those windows alone, 0.35 px
     again; from the coarse search's windows the profile fit holds). With the directions
-    pooled (holder_square) the full search's own profile fit holds on this frame, and so it
-    does where the area method's reading of the profile fit's model is consulted (0.15 px
-    off): here it is not, as before that reading existed."""
+    pooled (holder_square) the full search's own profile fit holds on this frame."""
     monkeypatch.setattr(holder, "square_sides", lambda lines, _points: lines)
-    monkeypatch.setattr(holder, "_area_reads_the_model", lambda *_a, **_k: False)
     rng = np.random.default_rng(2124)
     for i in range(40):
         sc = random_top_scene(rng, TOP_CATEGORIES[i % len(TOP_CATEGORIES)])

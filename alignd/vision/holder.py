@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Literal
@@ -313,21 +313,20 @@ def _ideal(pts: EdgePoints, lens: Lens | None) -> EdgePoints:
 def _profile_sides(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
                    half_width: int, margin: float, lens: Lens | None = None,
                    blur: np.ndarray | None = None
-                   ) -> tuple[list[tuple[Line | None, EdgePoints]], np.ndarray, float,
-                              tuple[np.ndarray, np.ndarray] | None]:
+                   ) -> tuple[list[tuple[Line | None, EdgePoints]], np.ndarray, float]:
     """The area method's crossings (``margin`` px short of the corners) refined by the
     profile fit, which reaches nearer the corners, their lines, each side's blur
     (``blur``: known widths, see :func:`fit_profiles`) and how far the area method's
     corners may lie from them for a penumbra beside a side (the profile fit models it,
     the area method does not: a corner moves with both of its sides, sqrt(2) times the
-    largest side's move) and the fitted model's windows (:class:`ProfileFit`)."""
+    largest side's move)."""
     fit = fit_profiles(gray, [pts for _ln, pts in sides], half_width=half_width, blur=blur,
                        corner_gap_px=margin)
     bent = math.sqrt(2.0) * float(np.max(np.abs(fit.bend_px), initial=0.0))
     ideal = [_ideal(f, lens) for f in fit.edges]
     # (sides whose directions agree with a rectangle's share it: holder_square)
     lines = square_sides([fit_line(p) for p in ideal], ideal)
-    return list(zip(lines, fit.edges, strict=True)), fit.widths, bent, fit.model
+    return list(zip(lines, fit.edges, strict=True)), fit.widths, bent
 
 
 def _side_match(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -856,7 +855,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                        size_tolerance)
     elif profile:
         # the sides it passed, refined by the profile fit: kept when they pass as well
-        fine, widths, bent, model = _profile_sides(gray, used, hw, margin, lens, blur)
+        fine, widths, bent = _profile_sides(gray, used, hw, margin, lens, blur)
         det3 = assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
                         size_tolerance)
         # two estimates of the same corners must agree within the area method's
@@ -895,12 +894,6 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             if det2.ok and det2.fit_sigma_px <= det.fit_sigma_px:
                 moved = _shift(det3.corners_px, det2.corners_px)
                 agree = moved <= _AGREE_PX + _AGREE_SIGMA * det2.fit_sigma_px + bent
-        if (det3.ok and not agree and model is not None
-                and not _rough_side(det.edge_rms_px)):
-            agree = _area_reads_the_model(
-                gray, model, corners, det, hw, margin, min_contrast, lens,
-                lambda sides: assemble(sides, corners, pol, expected_size_px, hint,
-                                       max_rms_px, lens, size_tolerance, inflate=False))
         if agree:
             det = replace(det3, side_blur_px=tuple(
                 float(v) for v in widths[_side_match(corners, det3.corners_px)]))
@@ -1001,28 +994,6 @@ def _off_the_neighbours(gray: np.ndarray, det: HolderDetection, corners: np.ndar
     log.debug("top image: the sides measured again without a step beside them did not "
               "settle (%.2f px in the last pass)", moved)
     return det
-
-
-def _area_reads_the_model(gray: np.ndarray, model: tuple[np.ndarray, np.ndarray],
-                          corners: np.ndarray, det: HolderDetection, hw: int, margin: float,
-                          min_contrast: float, lens: Lens | None,
-                          read: Callable[[list[tuple[Line | None, EdgePoints]]],
-                                         HolderDetection]) -> bool:
-    """Whether the area method reads the profile fit's own model (``model``: its windows'
-    pixels and values, painted over the frame) as it read the frame (``det``, its windows of
-    ``hw`` px round ``corners``): then the model holds, and the two methods' corners
-    differ by the area method's own error (a soft side overflowing its windows, a steep
-    light: corpus seed 2124 #188 at 640 x 480, area 0.51 px off, refined 0.07, the
-    model's area reading 0.15 px from the frame's); where the model misfits (a second
-    step, a hole) the two readings differ as the frame differs from the model. Like
-    with like, on the same windows; a side whose crossings scatter is no single edge to
-    compare (a hard shadow's band 5 px beside it: both methods 5 px off, and the model
-    read as the frame)."""
-    painted = np.asarray(gray, np.float32).copy()
-    painted.ravel()[model[0].ravel()] = model[1].ravel()
-    again = read(_fit_sides(painted, corners, hw, margin, min_contrast, lens))
-    return again.ok and (_shift(again.corners_px, det.corners_px)
-                         <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px)
 
 
 def _shift(a: np.ndarray, b: np.ndarray) -> float:

@@ -563,14 +563,14 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
                    iterations: int, table: tuple[np.ndarray, float, int] | None = None,
                    bend: tuple[np.ndarray, np.ndarray] | None = None,
                    clipped: tuple[np.ndarray, np.ndarray] | None = None
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_fit` with s fixed per edge, S and S' read from one table per edge
     (:func:`_step_table`, built here unless given) and the 3 x 3 normal equations of
-    (a1, D, u) solved in closed form; returns u, D, each row's residual RMS and its
-    model's window (as P; both of the last iteration's start). ``bend``: the floor's
-    departure from its tails' line on either side at each pixel (pixel-major, see
-    :func:`_penumbra_bend`); ``clipped``: the pixels at the sensor's full scale and at
-    zero, pixel-major (see :func:`_censored`)."""
+    (a1, D, u) solved in closed form; returns u, D and each row's residual RMS (of the
+    last iteration's start). ``bend``: the floor's departure from its tails' line on
+    either side at each pixel (pixel-major, see :func:`_penumbra_bend`); ``clipped``:
+    the pixels at the sensor's full scale and at zero, pixel-major (see
+    :func:`_censored`)."""
     tab, reach, ng = table if table is not None else _step_table(
         float(np.max(np.abs(x))), blur, geo)
     # pixel-major arrays (pixel, row): each row's parameters then broadcast along the long
@@ -614,7 +614,6 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
     crow = np.zeros(P.shape[0], bool)
     if clipped is not None:
         crow = np.asarray(np.any(clipped[0] | clipped[1], axis=0))
-    fit_r = np.zeros_like(base1)
     for _ in range(iterations):
         f = lead - nu_h * u
         np.minimum(np.maximum(f, 0.0, out=f), ng - 1.001, out=f)
@@ -626,7 +625,7 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         S1 = node[..., 2] + node[..., 3] * f
         Q = node[..., 4] + node[..., 5] * f
         amp = D + xc * db + dbend
-        r = fit_r = base1 - a1 - amp * S - ramp_nu * Q
+        r = base1 - a1 - amp * S - ramp_nu * Q
         # (dQ/du = nu d K(d), d = nu (x - u) the normal distance)
         g = -nu * amp * S1 + ramp * (nu * (xc - u)) * S1
         if clipped is None or not crow.all():
@@ -669,7 +668,7 @@ def _fit_tabulated(P: np.ndarray, x: np.ndarray, u: np.ndarray, row: np.ndarray,
         r0 = np.where(crow, r0, ones @ r)
         m = np.where(crow, m, float(ones.size))
     misfit = np.sqrt(np.maximum(ones @ (r * r) - r0 * r0 / m, 0.0) / np.maximum(m, 1.0))
-    return u, D, misfit, P - fit_r.T
+    return u, D, misfit
 
 
 _FULL, _ZERO = 254.5, 0.5  # a pixel at or beyond these (8-bit DN) is clipped
@@ -851,10 +850,6 @@ class ProfileFit:
     edges: list[EdgePoints]
     widths: np.ndarray
     bend_px: np.ndarray
-    # the fitted model's windows of the crossings kept: their pixels' indices in the
-    # flattened frame and values, (N, 2 hw + 1) each (the area method reads it to tell
-    # a misfit from its own error: alignd.vision.holder)
-    model: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int = 5,
@@ -1001,8 +996,8 @@ def fit_profiles(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int =
                                        np.ascontiguousarray(cl[1].T))
     if clipped is not None:
         iterations += 2
-    u, D, misfit, model = _fit_tabulated(P, x, r1.c - centre, r1.edge, blur_e, geo, b1, b2,
-                                         iterations, table, clipped=clipped)
+    u, D, misfit = _fit_tabulated(P, x, r1.c - centre, r1.edge, blur_e, geo, b1, b2,
+                                  iterations, table, clipped=clipped)
     if np.any(blur_e > _WIDE_BLUR):
         # a soft side: the tails' slopes once more, the fitted step's own tail taken off,
         # and the positions again from there (on a sharp one the step's tail is gone
@@ -1011,15 +1006,15 @@ def fit_profiles(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int =
         u0 = np.where(ok0, u, r1.c - centre)
         b1, b2 = _refit_slopes(flat, P, x, r1, u0, np.where(ok0, D, 0.0), blur_e, table,
                                geo, b1, b2, hw, ne)
-        u, D, misfit, model = _fit_tabulated(P, x, u0, r1.edge, blur_e, geo, b1, b2,
-                                             iterations, table, clipped=clipped)
+        u, D, misfit = _fit_tabulated(P, x, u0, r1.edge, blur_e, geo, b1, b2, iterations,
+                                      table, clipped=clipped)
     ok1 = np.isfinite(u) & np.isfinite(D)
     u1 = np.where(ok1, u, r1.c - centre)
     bend = _penumbra_bend(flat, r1, u1, np.where(ok1, D, 0.0), hw, table, geo, b1, b2, ne,
                           blur_e)
     if bend is not None:
-        u, D, misfit, model = _fit_tabulated(P, x, u1, r1.edge, blur_e, geo, b1, b2,
-                                             iterations, table, (bend.lo, bend.hi), clipped)
+        u, D, misfit = _fit_tabulated(P, x, u1, r1.edge, blur_e, geo, b1, b2, iterations,
+                                      table, (bend.lo, bend.hi), clipped)
         # where the penumbra was fitted with the edge and that fit moves it clearly, it
         # places the edge (and it has the blur, which a penumbra across the edge widens)
         sh = np.where(np.abs(bend.shift) >= _SHIFT_MIN, bend.shift, np.nan)[r1.edge]
@@ -1053,7 +1048,4 @@ def fit_profiles(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int =
         vertical = edges[i].vertical
         xy = xy_columns(q, t) if vertical else xy_columns(t, q)
         out[i] = EdgePoints(xy, D[sel], vertical)
-    j = np.arange(-hw, hw + 1)
-    at = (r1.base[good, None]
-          + (centre[good].astype(np.intp)[:, None] + j) * r1.stride[good, None])
-    return ProfileFit(out, widths, bend_px, (at, model[good]) if good.any() else None)
+    return ProfileFit(out, widths, bend_px)
