@@ -198,6 +198,11 @@ class SimWorldConfig(Strict):
     top_frame_px: tuple[int, int] = Field((1280, 720), description=(
         "the top camera's frame, width x height (px): the thesis' webcam's 1280 x 720; "
         "another camera's (640 x 480, 1920 x 1080) to try the vision on it"))
+    side_frame_px: tuple[int, int] = Field((1280, 720), description=(
+        "the side camera's frame, width x height (px)"))
+    side_pixel_size_um: float = Field(60.0, gt=0, description=(
+        "the side camera's pixel at the sample (um): the pole (6 mm) and the sample (5 mm "
+        "thick) 25 mm apart must both stay in its frame"))
     holder_size_mm: tuple[float, float] = (60.0, 40.0)
     rim_radius_mm: float = 150.0  # the thesis turntable; configs/sim.yaml uses a smaller one
     sample_thickness_mm: float = 5.0
@@ -242,9 +247,11 @@ class SimWorldConfig(Strict):
             raise ValueError(f"wobble_um {self.wobble_um} outside [0, 50]")
         if self.backlash_mm < 0 or self.turntable_backlash_deg < 0:
             raise ValueError("backlash must not be negative")
+        for key, (w, h) in (("top_frame_px", self.top_frame_px),
+                            ("side_frame_px", self.side_frame_px)):
+            if not (160 <= w <= 8192 and 120 <= h <= 8192):
+                raise ValueError(f"{key} {w} x {h} outside 160 x 120 .. 8192 x 8192")
         w, h = self.top_frame_px
-        if not (160 <= w <= 8192 and 120 <= h <= 8192):
-            raise ValueError(f"top_frame_px {w} x {h} outside 160 x 120 .. 8192 x 8192")
         if not (0 <= self.axis_px[0] < w and 0 <= self.axis_px[1] < h):
             raise ValueError(f"axis_px {self.axis_px} outside the {w} x {h} top frame")
         return self

@@ -48,8 +48,9 @@ class SimCamera(Camera):
                 opts = dataclasses.replace(opts, holder_dn=world.cfg.holder_dn)
             if role == "top" and world.cfg.top_lens_k1:
                 opts = dataclasses.replace(opts, k1=world.cfg.top_lens_k1)
-            if role == "top":
-                opts = dataclasses.replace(opts, size_px=world.cfg.top_frame_px)
+            opts = dataclasses.replace(opts, size_px=world.cfg.top_frame_px) if role == "top" \
+                else dataclasses.replace(opts, size_px=world.cfg.side_frame_px,
+                                         side_pixel_size_um=world.cfg.side_pixel_size_um)
         # the camera's tone curve (the camera config's gamma) over the options' own
         self.opts = opts if is_linear(gamma) else dataclasses.replace(opts, gamma=gamma)
         self.rng = np.random.default_rng(seed)
