@@ -158,9 +158,9 @@ class SceneCamera(Camera):
             side = self.world.side_scene()
             meta["tilt_deg"] = side.sample_edge_angle_deg - side.pole_angle_deg
             from drivers.sim.render import RenderOptions, side_x_px
+            from drivers.sim.sim_camera import framed
 
-            opts = RenderOptions(size_px=self.world.cfg.side_frame_px,
-                                 side_pixel_size_um=self.world.cfg.side_pixel_size_um)
+            opts = framed(RenderOptions(), self.world.cfg, "side")
             meta["sample_x_px"] = side_x_px(side.sample_x_mm, opts)
             meta["pole_x_px"] = side_x_px(side.pole_x_mm, opts)
         img = np.full((8, 8), self._seq % 251, np.uint8)

@@ -11,7 +11,7 @@ import numpy as np
 
 from drivers.camera import Camera, Frame
 from drivers.clock import SYSTEM_CLOCK, Clock
-from drivers.config import ToneCurve
+from drivers.config import SimWorldConfig, ToneCurve
 from drivers.sim import render
 from drivers.sim.clock import ScaledClock
 from drivers.sim.world import World
@@ -19,6 +19,16 @@ from drivers.tone_curves import is_linear
 
 BLUR_STEP_PX = 0.25  # sub-exposures are rendered this far apart along the fastest corner
 MAX_SUBFRAMES = 24
+
+
+def framed(opts: render.RenderOptions, cfg: SimWorldConfig,
+           role: Literal["top", "side"]) -> render.RenderOptions:
+    """``opts`` with the world's frame size for camera ``role`` (and, for the side camera,
+    its pixel size): what the camera draws and where the world's truth puts it in px."""
+    if role == "top":
+        return dataclasses.replace(opts, size_px=cfg.top_frame_px)
+    return dataclasses.replace(opts, size_px=cfg.side_frame_px,
+                               side_pixel_size_um=cfg.side_pixel_size_um)
 
 
 class SimCamera(Camera):
@@ -48,9 +58,7 @@ class SimCamera(Camera):
                 opts = dataclasses.replace(opts, holder_dn=world.cfg.holder_dn)
             if role == "top" and world.cfg.top_lens_k1:
                 opts = dataclasses.replace(opts, k1=world.cfg.top_lens_k1)
-            opts = dataclasses.replace(opts, size_px=world.cfg.top_frame_px) if role == "top" \
-                else dataclasses.replace(opts, size_px=world.cfg.side_frame_px,
-                                         side_pixel_size_um=world.cfg.side_pixel_size_um)
+            opts = framed(opts, world.cfg, role)
         # the camera's tone curve (the camera config's gamma) over the options' own
         self.opts = opts if is_linear(gamma) else dataclasses.replace(opts, gamma=gamma)
         self.rng = np.random.default_rng(seed)
