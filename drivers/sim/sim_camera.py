@@ -58,7 +58,8 @@ class SimCamera(Camera):
                 opts = dataclasses.replace(opts, holder_dn=world.cfg.holder_dn)
             if role == "top" and world.cfg.top_lens_k1:
                 opts = dataclasses.replace(opts, k1=world.cfg.top_lens_k1)
-            opts = framed(opts, world.cfg, role)
+        # the frame is the world's, given options or not (its top camera projects into it)
+        opts = framed(opts, world.cfg, role)
         # the camera's tone curve (the camera config's gamma) over the options' own
         self.opts = opts if is_linear(gamma) else dataclasses.replace(opts, gamma=gamma)
         self.rng = np.random.default_rng(seed)
