@@ -78,9 +78,9 @@ class PrecheckConfig(Strict):
         "standard uncertainty (one frame's fit is good to 0.0005-0.006 deg)"))
     tilt_u_target_deg: float | None = Field(0.0006, gt=0, description=(
         "while the tilt's standard uncertainty is above this (deg), take as many side frames "
-        "again, up to tilt_max_frames; on MJPEG frames it stops early when a doubling barely "
-        "lowers it (the coding of a still view, an error the frames share, which more frames "
-        "do not average). null: tilt_frames frames, no more"))
+        "again, up to tilt_max_frames (on MJPEG frames it falls slowly: the coding of a still "
+        "view is an error the frames share, which more frames do not average). null: "
+        "tilt_frames frames, no more"))
     tilt_max_frames: int = Field(64, ge=1, le=1000, description=(
         "the most side frames the tilt pre-check takes when tilt_u_target_deg asks for more "
         "(never fewer than tilt_frames); about 0.1 s a frame"))

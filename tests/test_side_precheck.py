@@ -78,24 +78,23 @@ def test_pre_check_frames_mean_and_uncertainty() -> None:
 
 
 def test_an_uncertain_tilt_takes_more_frames_until_it_is_certain_enough() -> None:
-    """A faint, unevenly lit view whose 4 frames leave the tilt uncertain to 0.0016 deg:
+    """A faint, unevenly lit view whose 4 frames leave the tilt uncertain to 0.0010 deg:
     the pre-check doubles its frames while u is above the target, within the most
     allowed, and its error stays within its (smaller) uncertainty."""
     sc = random_side_scene(np.random.default_rng(2), "uneven light", frames=4)
     rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
     four = measure_tilt_frames(list(sc.frames), **rois)
-    assert four.u_deg > 0.0012 and four.stop == ""
+    assert four.u_deg > 0.0009 and four.stop == ""
     more = sc.stream()
     av = measure_tilt_frames(list(sc.frames), **rois, more=more, u_target_deg=0.0006,
                              max_frames=32)
     assert more.asked[:2] == [4, 8] and av.n == 4 + sum(more.asked) and av.n <= 32
     assert av.frames[0].tilt_deg == four.frames[0].tilt_deg  # the same first frames
-    assert av.u_deg < 0.6 * four.u_deg
+    assert av.u_deg < 0.75 * four.u_deg
     assert av.n >= 16  # 4 + 4 + 8 at least
-    # it stops on reaching the target, the most allowed, or a doubling that barely helped
-    why = ("<= 0.0006" if av.u_deg <= 0.0006 else "most allowed" if av.n == 32
-           else "fell only")
-    assert why in av.stop, (av.n, av.u_deg, av.stop)
+    # it stops on reaching the target or the most allowed
+    why = "<= 0.0006" if av.u_deg <= 0.0006 else "32 frames, the most allowed"
+    assert why in av.stop and (av.u_deg <= 0.0006 or av.n == 32), (av.n, av.u_deg, av.stop)
     assert abs(av.tilt_deg - sc.tilt_deg) <= 3 * av.u_deg
     # the most allowed holds: 4 frames, then 2 to reach 6, then none
     more = sc.stream()
@@ -108,16 +107,15 @@ def test_an_uncertain_tilt_takes_more_frames_until_it_is_certain_enough() -> Non
     assert more.asked == [] and done.n == 4 and done.tilt_deg == four.tilt_deg
 
 
-@pytest.mark.parametrize(("cat", "asked_then", "n"), [("jpeg", [4], 8),
-                                                     ("uneven light", [4, 8], 16)])
-def test_frames_that_repeat_their_error_stop_the_frame_taking(cat: str, asked_then: list[int],
-                                                              n: int) -> None:
-    """JPEG frames that share their error (here the same frame again, as a still view's
-    coding repeats most of its error): a doubling does not lower u, so the pre-check
-    stops there and says why instead of taking frames up to the most allowed. Raw frames
-    do not stop so: their noise is independent, and what they share (lighting, texture)
-    cannot be told from u's own scatter (the bench's #147 stopped at 32 frames 0.00315 deg
-    off, and at 64 it is 0.00244)."""
+@pytest.mark.parametrize("cat", ["jpeg", "uneven light"])
+def test_frames_that_repeat_their_error_still_take_frames_up_to_the_most_allowed(
+        cat: str) -> None:
+    """Frames that share their error (here the same frame again, as a still view's JPEG
+    coding repeats most of its error): u does not fall, and the pre-check takes frames up
+    to the most allowed and says so. A rule that stopped JPEG frames there (u lowered by
+    less than 0.85 by a doubling) left the coding bias to be simulated from fewer frames:
+    on the bench's views (regions, +-12 px windows) its largest error was 0.00209 and
+    0.00326 deg (seeds 2224, 2124) against 0.00165 and 0.00207 without it."""
     sc = random_side_scene(np.random.default_rng(2), cat, frames=4)
     assert (sc.encoding.jpeg_quality is not None) == (cat == "jpeg")
     rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
@@ -129,8 +127,8 @@ def test_frames_that_repeat_their_error_stop_the_frame_taking(cat: str, asked_th
 
     av = measure_tilt_frames([sc.frames[1]] * 4, **rois, more=same, u_target_deg=1e-6,
                              max_frames=16)
-    assert asked == asked_then and av.n == n
-    assert ("share" if cat == "jpeg" else "16 frames, the most allowed") in av.stop
+    assert asked == [4, 8] and av.n == 16
+    assert "16 frames, the most allowed" in av.stop
 
 
 def test_more_frames_leave_the_corpus_as_it_was() -> None:
@@ -281,7 +279,7 @@ def test_jpeg_quality_is_found_and_raw_frames_are_not_taken_for_jpeg() -> None:
 def test_jpeg_coding_bias_is_taken_off_the_pre_check(seed: int) -> None:
     """JPEG's coding error along a near-vertical edge follows the edge's phase in its block
     column and repeats in every frame of a static view, so the pre-check's mean kept it
-    (these seeded q < 80 views erred by 0.002 and 0.0044 deg). Coding the fitted edge again
+    (these seeded q < 80 views erred by 0.0016 and 0.0038 deg). Coding the fitted edge again
     at the frames' quality measures that bias; taken off, the error is a fraction of it and
     within the stated uncertainty. Raw frames are left as they were."""
     sc = random_side_scene(np.random.default_rng(seed), "jpeg", frames=8)
@@ -291,7 +289,7 @@ def test_jpeg_coding_bias_is_taken_off_the_pre_check(seed: int) -> None:
     assert av.jpeg_bias_deg is not None
     err = av.tilt_deg - sc.tilt_deg
     before = err + av.jpeg_bias_deg
-    assert abs(before) > 0.0019
+    assert abs(before) > 0.0015
     assert abs(err) < 0.35 * abs(before)
     assert abs(err) <= 2.0 * av.u_deg
     clean = random_side_scene(np.random.default_rng(seed), "full-height sample", frames=4)

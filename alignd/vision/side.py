@@ -302,6 +302,19 @@ def _roi_edges(image: np.ndarray, roi: tuple[int, int, int, int], what: str,
 
 
 SPREADS: tuple[Spread, ...] = ("optics", "pixel grid")
+# the profile fit's window, +- this many px where the other edges leave room (6 px clear
+# of them; :func:`_half_width`). Each row's levels and slopes are its own, and near the
+# edge a slope is nearly collinear with the edge's position: a wider window measures the
+# slopes farther out. +-12 against +-7 on the bench's 300 views (regions, pre-check by
+# uncertainty), seed 2224: max 0.00289 -> 0.00209 deg, RMS 0.00051 -> 0.00045, 16.6 ->
+# 12.9 frames a view; +-16: 0.00238 (docs/vision.md, "A wider window")
+PROFILE_HALF_WIDTH = 12
+# ... where its angle agrees with the +-7 px window's within this many standard errors of
+# their difference (the narrower fit's variance less the wider's, at least a tenth of
+# the narrower's); else the narrow window's. A pole shaded 240-280 DN across, clipped at
+# one edge, read 0.015 deg off in the wide window
+NARROW_HALF_WIDTH = 7
+WIDE_AGREEMENT = 3.0
 
 
 def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
@@ -314,10 +327,9 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
     (None when ``strict``: a tracked edge must be measured in this frame). ``line``: a line
     beside the edge, as :func:`alignd.vision.edge_profile.fit_vertical_edge` takes it."""
     h, w = gray.shape
+    hw = half_width or _half_width(gray, e, others, roi, line)
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, w, h)
     x0, y0, x1, y1 = max(int(x0), 0), max(int(y0), 0), min(int(x1), w), min(int(y1), h)
-    gaps = [abs(o.x_mid_px - e.x_mid_px) for o in others if abs(o.x_mid_px - e.x_mid_px) > 3]
-    hw = half_width or int(np.clip(math.floor(min(gaps, default=99.0) - 6.0), 4, 7))
     r0 = max(e.rows[0] + end_trim_rows, y0 + 4)
     r1 = min(e.rows[1] - end_trim_rows, y1 - 5)
     y_mid = (e.rows[0] + e.rows[1]) / 2
@@ -345,6 +357,28 @@ def _profiled(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
                    spread=fit.spread, half_width=hw, blur_px=fit.blur_px, bands=fit.bands,
                    band_angle_deg=fit.band_angle_deg, rms_dn=fit.rms_dn,
                    highlight=fit.highlight)
+
+
+def _half_width(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
+                roi: tuple[int, int, int, int] | None, line: Highlight | bool | None) -> int:
+    """The profile fit's window for edge ``e``: as wide as the other edges leave room for,
+    up to :data:`PROFILE_HALF_WIDTH`, where its angle agrees with the narrow window's
+    (:data:`WIDE_AGREEMENT`): the per-row slopes are straight lines, and a surface shaded
+    on a curve (a rod) is one only near the edge. Else :data:`NARROW_HALF_WIDTH` (or less,
+    where the room is less). Decided once for every blur model, whose residuals are then
+    compared over the same windows."""
+    gaps = [abs(o.x_mid_px - e.x_mid_px) for o in others if abs(o.x_mid_px - e.x_mid_px) > 3]
+    room = int(np.clip(math.floor(min(gaps, default=99.0) - 6.0), 4, PROFILE_HALF_WIDTH))
+    if room <= NARROW_HALF_WIDTH:
+        return room
+    narrow = _profiled(gray, e, others, roi, strict=True, half_width=NARROW_HALF_WIDTH,
+                       line=line)
+    wide = _profiled(gray, e, others, roi, strict=True, half_width=room, line=line)
+    if narrow is None or wide is None:
+        return NARROW_HALF_WIDTH if wide is None else room
+    bound = WIDE_AGREEMENT * math.sqrt(max(narrow.sigma_deg ** 2 - wide.sigma_deg ** 2,
+                                           0.1 * narrow.sigma_deg ** 2))
+    return room if abs(wide.angle_deg - narrow.angle_deg) <= bound else NARROW_HALF_WIDTH
 
 
 def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
@@ -746,15 +780,18 @@ def _one_spread(gray: np.ndarray, pole: list[SideEdge], sample: list[SideEdge],
     edge's phase: 0.0018-0.0034 deg of tilt on the bench's views. None when no model fits
     every edge."""
     fitted: list[tuple[list[SideEdge], list[SideEdge]]] = []
+    pole_hw = [_half_width(gray, e, others, pole_roi, None) for e in pole]
+    sample_hw = [_half_width(gray, e, others, sample_roi, False) for e in sample]
     for spread in SPREADS:
-        ps = [_profiled(gray, e, others, pole_roi, spreads=(spread,), strict=True)
-              for e in pole]
+        ps = [_profiled(gray, e, others, pole_roi, spreads=(spread,), strict=True,
+                        half_width=k)
+              for e, k in zip(pole, pole_hw, strict=True)]
         # a line beside an edge is a polished pole's highlight: the samples are diffuse (a
         # shadow's or a lamp's boundary beside an uneven-light sample's edge, fitted as
         # one, doubled its error and the pre-check took 64 frames where it took 8)
         ss = [_profiled(gray, e, others, sample_roi, spreads=(spread,), strict=True,
-                        line=False)
-              for e in sample]
+                        half_width=k, line=False)
+              for e, k in zip(sample, sample_hw, strict=True)]
         p_ok, s_ok = [p for p in ps if p is not None], [q for q in ss if q is not None]
         if len(p_ok) == len(ps) and len(s_ok) == len(ss):
             fitted.append((p_ok, s_ok))
@@ -856,12 +893,14 @@ def measure_tilt_frames(images: list[np.ndarray], *,
 
     With ``more`` (k -> k further frames of the view) and ``u_target_deg``, frames are
     added while the uncertainty is above the target: as many again each time, up to
-    ``max_frames`` in all, and, on JPEG-coded frames, no further once a doubling lowered
-    it by less than :data:`STALL` (independent noise falls by 1/sqrt 2; what the frames
-    share, JPEG's coding of a still view, does not). ``TiltAverage.stop`` says why it
-    stopped. ``gamma``: the camera's tone curve (``cameras[].gamma``), undone before each
-    raw frame is measured (:func:`alignd.vision.edges.linearise`); ``images`` and
-    ``more``'s are the frames as the camera delivered them. JPEG-coded ones are measured
+    ``max_frames`` in all. On JPEG-coded frames u falls slowly (the coding error a still
+    view's frames share does not average away), yet the simulated coding bias taken off
+    at the end is the truer the more frames it is simulated from, so they are not stopped
+    early (docs/vision.md, "A wider window, and the stall rule's end").
+    ``TiltAverage.stop`` says why it stopped. ``gamma``: the camera's tone curve
+    (``cameras[].gamma``), undone before each raw frame is measured
+    (:func:`alignd.vision.edges.linearise`); ``images`` and ``more``'s are the frames as
+    the camera delivered them. JPEG-coded ones are measured
     as coded, the coding's bias taken off there: undoing the curve after the coding did
     worse than leaving it (docs/vision.md, "A camera's tone curve")."""
     if not images:
@@ -869,8 +908,7 @@ def measure_tilt_frames(images: list[np.ndarray], *,
     images = list(images)
     first = measure_tilt(linearise(images[0], gamma), pole_roi_px=pole_roi_px,
                          sample_roi_px=sample_roi_px)
-    # the frames' JPEG quality (None: not coded), read once: the bias step needs it, and
-    # so does the stall rule below
+    # the frames' JPEG quality (None: not coded), read once for the bias step
     quality = (_coded_quality(images[0], first) if len(images) >= 3 or more is not None
                else None)
     if quality is not None and not is_linear(gamma):
@@ -889,19 +927,13 @@ def measure_tilt_frames(images: list[np.ndarray], *,
     stop = ""
     if more is not None and u_target_deg is not None:
         limit = max(max_frames or len(frames), len(frames))
-        # the stall rule is for coded frames: raw frames' noise is independent, and the
-        # error they share (lighting, texture) cannot be told from u's own scatter
-        coded = quality is not None
-        u, before = _average_tilt(images, frames, None).u_deg, math.inf
         while True:
+            u = _average_tilt(images, frames, None).u_deg
             if u <= u_target_deg:
                 stop = f"u {u:.4f} <= {u_target_deg:g} deg"
-            elif len(frames) >= limit:
+                break
+            if len(frames) >= limit:
                 stop = f"{limit} frames, the most allowed"
-            elif coded and u > STALL * before:
-                stop = (f"u fell only {before:.4f} -> {u:.4f} deg as the frames doubled (the "
-                        "frames share most of their error: more would not lower it much)")
-            if stop:
                 break
             new = more(min(len(frames), limit - len(frames)))
             if not new:
@@ -909,18 +941,7 @@ def measure_tilt_frames(images: list[np.ndarray], *,
                 break
             images.extend(new)
             track(new)
-            before, u = u, _average_tilt(images, frames, None).u_deg
     return replace(_average_tilt(images, frames, quality), stop=stop)
-
-
-# a doubling of JPEG-coded frames that lowers the tilt's uncertainty by less than this
-# factor ends the pre-check's frame taking: 1/sqrt 2 = 0.71 when the frames' errors are
-# independent, near 1 where they share it (a still view's coding). On the bench's 300 views
-# (regions, up to 64 frames, target 0.0006 deg) it saved 6 frames a view and the largest
-# error was 0.00285 deg with it, 0.00294 without. Raw frames are not stopped so: u's own
-# estimate scatters, and a raw view stopped 0.00315 deg off at 32 frames (docs/vision.md,
-# Frames by uncertainty)
-STALL = 0.85
 
 
 def _average_tilt(images: list[np.ndarray], frames: list[SideMeasurement],
