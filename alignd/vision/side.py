@@ -365,7 +365,8 @@ def _half_width(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
     up to :data:`PROFILE_HALF_WIDTH`, where its angle agrees with the narrow window's
     (:data:`WIDE_AGREEMENT`): the per-row slopes are straight lines, and a surface shaded
     on a curve (a rod) is one only near the edge. Else :data:`NARROW_HALF_WIDTH` (or less,
-    where the room is less). Decided once for every blur model, whose residuals are then
+    where the room is less), and so where either fit found a line along the edge (a
+    polished rod's highlight). Decided once for every blur model, whose residuals are then
     compared over the same windows."""
     gaps = [abs(o.x_mid_px - e.x_mid_px) for o in others if abs(o.x_mid_px - e.x_mid_px) > 3]
     room = int(np.clip(math.floor(min(gaps, default=99.0) - 6.0), 4, PROFILE_HALF_WIDTH))
@@ -376,6 +377,8 @@ def _half_width(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
     wide = _profiled(gray, e, others, roi, strict=True, half_width=room, line=line)
     if narrow is None or wide is None:
         return NARROW_HALF_WIDTH if wide is None else room
+    if narrow.highlight is not None or wide.highlight is not None:
+        return NARROW_HALF_WIDTH  # a polished rod: its surface is shaded on a curve
     bound = WIDE_AGREEMENT * math.sqrt(max(narrow.sigma_deg ** 2 - wide.sigma_deg ** 2,
                                            0.1 * narrow.sigma_deg ** 2))
     return room if abs(wide.angle_deg - narrow.angle_deg) <= bound else NARROW_HALF_WIDTH
