@@ -223,3 +223,31 @@ def test_a_pole_clipped_black_is_refused_asking_for_more_light() -> None:
     img = 255 - _bright_pole(250.0, 300.0, 0.0).astype(np.int16) - 45
     with pytest.raises(VisionError, match=r"pole's edge .* clipped \(black .* raise the"):
         measure_tilt(np.clip(img, 0, 255).astype(np.uint8), **_REGIONS)
+
+
+def test_an_edge_found_again_over_part_of_its_rows_does_not_narrow_its_window() -> None:
+    """On a camera rolled 1 deg, the sample edge was also found over its upper half alone:
+    that find's middle sits 5 px from the whole edge's middle (their rows' middles are 300
+    rows apart), and was taken for another edge 5 px away, holding the profile fit's
+    window to +-4 px (a 1920 x 1080 corpus view: one frame 0.0049 deg uncertain instead of
+    0.0005, the pre-check 0.0022 deg off). It is the same edge: the window stays wide."""
+    from dataclasses import replace
+
+    from alignd.vision.side import PROFILE_HALF_WIDTH, _half_width
+
+    img, _pole_x, near = _view((200.0, 40.0, 70.0), 40.0, 200.0, 300.0)
+    t = math.tan(math.radians(1.0))  # the whole view rolled: both bars lean 1 deg
+    rolled = cv2.warpAffine(img, np.float32([[1.0, t, -t * _H / 2], [0.0, 1.0, 0.0]]),
+                            (_W, _H), borderMode=cv2.BORDER_REPLICATE)
+    edges = find_vertical_edges(rolled)
+    e = min(edges, key=lambda x: abs(x.x_mid_px - near))
+    assert abs(e.x_mid_px - near) < 2.0 and abs(e.angle_deg) > 0.9
+    mid = (e.rows[0] + e.rows[1]) // 2
+    upper = replace(e, rows=(e.rows[0], mid),
+                    x_mid_px=float(e.line.minor_at((e.rows[0] + mid) / 2)))
+    assert abs(upper.x_mid_px - e.x_mid_px) > 4.0  # as far apart as in the corpus view
+    assert _half_width(rolled, e, [*edges, upper], None, False) == PROFILE_HALF_WIDTH
+    # an edge that is another one, beside it all along, still narrows the window
+    beside = replace(upper, line=replace(e.line, d=e.line.d + 8.0 * e.line.n[0]),
+                     x_mid_px=upper.x_mid_px + 8.0)
+    assert _half_width(rolled, e, [*edges, beside], None, False) == 4
