@@ -373,7 +373,8 @@ def run_footprint(cfg: AligndConfig) -> tuple[int, str]:
     The frames dominate: an ``align`` may measure up to ``max_iterations`` times with a
     verification sweep after each, every sweep ``sweep_steps x frames_per_step`` frames
     (a continuous sweep: every streamed frame over the widest sweep), plus the
-    calibration (2 stages x 4 positions, refreshed up to ``MAX_CAL_REFRESHES`` times).
+    calibration (2 stages x 4 positions, refreshed up to ``MAX_CAL_REFRESHES`` times),
+    and the pre-check's rim frames and side frames (as many as it may take).
     A frame file is a PNG, at most about its raw size: width x height, x3 for a real
     camera that may deliver colour. ``daemon.keep_frames`` says which are files."""
     from alignd.procedures.align import MAX_CAL_REFRESHES
@@ -385,20 +386,34 @@ def run_footprint(cfg: AligndConfig) -> tuple[int, str]:
         c = p.continuous
         per_sweep = math.ceil((2 * max(p.max_sweep_deg or p.sweep_deg, p.sweep_deg) + 2)
                               * p.frames_per_step / c.speed_deg_s * c.frame_rate_hz)
+    pc = p.precheck
+    side = cfg.camera("side")
+    side_frames = 0
     if cfg.daemon.keep_frames == "all":
+        # the sweeps, the calibration and the pre-check's rim frames; the side camera's
+        # pre-check frames apart (up to tilt_max_frames while u is above its target)
         frames = sweeps * per_sweep + \
-            (1 + MAX_CAL_REFRESHES) * 2 * 4 * p.frames_per_step
+            (1 + MAX_CAL_REFRESHES) * 2 * 4 * p.frames_per_step + pc.rim_frames
+        if side is not None:
+            side_frames = max(pc.tilt_frames, pc.tilt_max_frames if pc.tilt_u_target_deg
+                              else 0)
     elif cfg.daemon.keep_frames == "report":
         frames = sweeps
     else:
         frames = 0
-    top = cfg.camera("top")
-    w, h = (top.width, top.height) if top and top.width and top.height else DEFAULT_FRAME_PX
-    depth = 1 if top is not None and top.source == "sim" else 3
-    frame_bytes = w * h * depth
-    total = frames * frame_bytes + RECORDS_MARGIN_BYTES
-    how = (f"{frames} frames of {w}x{h}x{depth} bytes (keep_frames {cfg.daemon.keep_frames}) "
-           f"+ {RECORDS_MARGIN_BYTES / 2**20:.0f} MiB of records")
+
+    def size(cam: CameraConfig | None) -> tuple[int, int, int]:
+        w, h = (cam.width, cam.height) if cam and cam.width and cam.height else DEFAULT_FRAME_PX
+        return w, h, 1 if cam is not None and cam.source == "sim" else 3
+
+    top_wh, side_wh = size(cfg.camera("top")), size(side)
+    total = (frames * math.prod(top_wh) + side_frames * math.prod(side_wh)
+             + RECORDS_MARGIN_BYTES)
+    how = f"{frames} {'top ' if side_frames else ''}frames of {'x'.join(map(str, top_wh))} bytes"
+    if side_frames:
+        how += f" and {side_frames} side frames of {'x'.join(map(str, side_wh))} bytes"
+    how += (f" (keep_frames {cfg.daemon.keep_frames}) "
+            f"+ {RECORDS_MARGIN_BYTES / 2**20:.0f} MiB of records")
     return total, how
 
 

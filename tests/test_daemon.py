@@ -625,15 +625,16 @@ def test_disk_full_mid_run_still_records_the_runs_end_and_runs_resume_with_space
 @needs_mount
 def test_too_little_space_at_start_answers_status_with_the_reason(
         tmp: Path, capsys: pytest.CaptureFixture) -> None:
-    proc = _spawn_on_small_disk(tmp, SIM_CONFIG, "12m")  # a run may need 173 MiB of frames
+    proc = _spawn_on_small_disk(tmp, SIM_CONFIG, "12m")  # a run may need 236 MiB of frames
     client = Client(tmp / "s.sock", timeout_s=10.0)
     try:
         wait_ready(client, proc)  # it started (it used to exit with 3)
         refused = client.status()["runs_refused"]
-        assert "disk nearly full" in refused and "a run needs at least 173 MiB" in refused
-        assert "192 frames of 1280x720x1 bytes (keep_frames all)" in refused
+        assert "disk nearly full" in refused and "a run needs at least 236 MiB" in refused
+        assert ("200 top frames of 1280x720x1 bytes and 64 side frames of 1280x720x1 bytes "
+                "(keep_frames all)") in refused
         assert ctl(str(tmp / "s.sock"), "align") == 3
-        assert "a run needs at least 173 MiB" in capsys.readouterr().err
+        assert "a run needs at least 236 MiB" in capsys.readouterr().err
         assert client.history() == []
     finally:
         proc.send_signal(signal.SIGTERM)

@@ -20,6 +20,7 @@ from procedures_support import (
 )
 
 from alignd.procedures import MemoryRecorder, ProgressEvent, run_alignment, run_check
+from alignd.procedures.recorder import image_hash
 from alignd.procedures.tools import Corners
 from alignd.solve import parse_sweep
 
@@ -486,9 +487,13 @@ def test_rim_precheck_turns_the_disc_between_frames_when_asked(turn: float) -> N
     rig, _world = scene_rig(cfg, 4)
     seen: list[list[float]] = []
     said: list[str] = []
-    res = run_check(rig, cfg, tools=_rim_recording_tools(4, seen),
+    rec = MemoryRecorder()
+    res = run_check(rig, cfg, tools=_rim_recording_tools(4, seen), recorder=rec,
                     progress=lambda ev: said.append(ev.message))
     assert len(seen) == 1 and len(seen[0]) == pc.rim_frames
+    # the frames the rim was fitted on are in the run's record
+    assert [label for label, _h in rec.frames if label.startswith("precheck-rim-")] == [
+        f"precheck-rim-{k:03d}" for k in range(pc.rim_frames)]
     assert any("turned 22.5 deg between them" in m for m in said) == bool(turn)
     angles = np.asarray(seen[0])
     steps = np.diff(angles)
@@ -530,11 +535,13 @@ def test_tilt_precheck_grabs_fresh_side_frames_when_the_tool_asks_for_more() -> 
     cfg = sim_config()
     rig, world = scene_rig(cfg, 4)
     seqs: list[int] = []
+    hashes: list[str] = []
 
     def tilt_frames(frames: list[Any], more: MoreFrames | None) -> TiltReading:
         assert more is not None
         got = [*frames, *more(len(frames))]
         seqs.extend(f.seq for f in got)
+        hashes.extend(image_hash(f.image) for f in got)
         t = [float(f.metadata["tilt_deg"]) for f in got]
         return TiltReading(float(np.mean(t)), 0.0001, len(got), "u 0.0001 <= 0.0006 deg")
 
@@ -555,6 +562,9 @@ def test_tilt_precheck_grabs_fresh_side_frames_when_the_tool_asks_for_more() -> 
     assert (asked[0].step, asked[0].total) == (pc.tilt_frames, pc.tilt_max_frames)
     assert f"{pc.tilt_frames} more frame(s)" in asked[0].message
     assert f"above {pc.tilt_u_target_deg:g} deg" in asked[0].message
+    # every side frame the tilt came from is in the run's record, in the order taken
+    side = [f for f in rec.frames if f[0].startswith("precheck-side-")]
+    assert side == [(f"precheck-side-{k:03d}", h) for k, h in enumerate(hashes)]
 
 
 def test_precheck_warns_when_the_tracker_flags_the_holder() -> None:
