@@ -88,11 +88,17 @@ def _centre_record(run: dict[str, Any]) -> dict[str, Any] | None:
     return None
 
 
+SIDE_FRAME_PREFIX = "precheck-side-"  # the side camera's frames' labels (the pre-check's)
+
+
 def pick_frame(run: dict[str, Any]) -> dict[str, Any] | None:
     """The saved frame to draw on: from the last sweep, the one nearest turntable angle 0.
 
-    Returns ``{"hash", "angle_deg", "sweep"}`` or ``None`` when the run saved no frame."""
-    frames = [f for f in run.get("frames") or [] if isinstance(f, dict) and f.get("hash")]
+    Returns ``{"hash", "angle_deg", "sweep"}`` or ``None`` when the run saved no frame.
+    Top-camera frames only: the view is drawn at the top camera's scale (the side
+    pre-check's frames, ``precheck-side-NNN``, are in the record but not drawn here)."""
+    frames = [f for f in run.get("frames") or [] if isinstance(f, dict) and f.get("hash")
+              and not str(f.get("label", "")).startswith(SIDE_FRAME_PREFIX)]
     if not frames:
         return None
     sweeps = run.get("sweeps") or []

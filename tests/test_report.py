@@ -198,3 +198,16 @@ def test_a_run_without_sweeps_shows_its_last_saved_frame_named() -> None:
     frame = np.full((720, 1280), 120, np.uint8)
     view = report.draw_top_view(run, frame)
     assert view[8:30, 10:300].max() == 255  # the caption, white on the frame's grey
+
+
+def test_a_run_stopped_at_the_tilt_precheck_draws_its_last_top_frame_not_a_side_one() -> None:
+    """The pre-check's side frames are in the record, but the view is drawn at the top
+    camera's scale (its scale bar, the stage directions): a run refused for the tilt
+    shows the last top frame (the rim's), not the side camera's pole and sample."""
+    run = {"frames": [{"hash": "aa01", "label": "precheck-rim-007"},
+                      {"hash": "bb02", "label": "precheck-side-000"},
+                      {"hash": "cc03", "label": "precheck-side-001"}], "sweeps": []}
+    pick = report.pick_frame(run)
+    assert pick is not None and pick["hash"] == "aa01" and pick["label"] == "precheck-rim-007"
+    only_side = {"frames": run["frames"][1:], "sweeps": []}
+    assert report.pick_frame(only_side) is None
