@@ -816,21 +816,27 @@ def draw_verdict(run: dict[str, Any], width: int = WIDTH, height: int = VERDICT_
     return img
 
 
-def render_report(run: dict[str, Any], image: np.ndarray | None) -> np.ndarray:
+def render_report(run: dict[str, Any], image: np.ndarray | None,
+                  side_image: np.ndarray | None = None) -> np.ndarray:
     """The report image (BGR): header, top view, the decision and its budget, the zoom
-    beside the convergence plot, notes; for a commission run, its own picture
+    beside the convergence plot, the side camera's pre-check frame (``side_image``, when
+    given: :mod:`alignd.report_side`), notes; for a commission run, its own picture
     (``alignd.commission_report``)."""
     if run.get("kind") == "commission":
         from alignd.commission_report import render_commission
 
         return render_commission(run, image)
     lower = np.hstack([draw_zoom(run), draw_convergence(run)])
-    return np.vstack([draw_header(run), draw_top_view(run, image), draw_verdict(run), lower,
-                      draw_notes(run)])
+    parts = [draw_header(run), draw_top_view(run, image), draw_verdict(run), lower]
+    if side_image is not None:
+        from alignd.report_side import draw_side_panel
+
+        parts.append(draw_side_panel(run, side_image, WIDTH))
+    return np.vstack([*parts, draw_notes(run)])
 
 
-def write_report(run: dict[str, Any], out_dir: Path, image: np.ndarray | None
-                 ) -> dict[str, Path]:
+def write_report(run: dict[str, Any], out_dir: Path, image: np.ndarray | None,
+                 side_image: np.ndarray | None = None) -> dict[str, Path]:
     """Write ``run-ID.png`` and ``run-ID.json`` into ``out_dir``, each atomically, the
     JSON last: a report whose JSON is there is complete (a kill in between leaves at most
     a new picture beside the old record)."""
@@ -838,7 +844,7 @@ def write_report(run: dict[str, Any], out_dir: Path, image: np.ndarray | None
     out_dir.mkdir(parents=True, exist_ok=True)
     png = out_dir / f"run-{run['id']}.png"
     js = out_dir / f"run-{run['id']}.json"
-    ok, buf = cv2.imencode(".png", render_report(run, image))
+    ok, buf = cv2.imencode(".png", render_report(run, image, side_image))
     if not ok:
         raise ValueError(f"cannot encode the report image for run {run.get('id')}")
     atomic_write_bytes(png, buf.tobytes())

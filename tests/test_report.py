@@ -211,3 +211,38 @@ def test_a_run_stopped_at_the_tilt_precheck_draws_its_last_top_frame_not_a_side_
     assert pick is not None and pick["hash"] == "aa01" and pick["label"] == "precheck-rim-007"
     only_side = {"frames": run["frames"][1:], "sweeps": []}
     assert report.pick_frame(only_side) is None
+
+
+def test_the_side_panel_draws_the_edges_found_in_the_first_side_frame() -> None:
+    """A run with side frames in its record draws the first one, its edges found again
+    (the sample's red, the pole's green, each on its edge in the frame scaled to half the
+    width), beside the pre-check's mean tilt; a frame where no edge is found says so."""
+    from alignd.report_side import POLE_INK, SAMPLE_INK, draw_side_panel, side_frame_hash
+    from drivers.config import SimWorldConfig
+    from drivers.sim.render import RenderOptions, posed_world, render_side, side_truth
+
+    sc = posed_world(SimWorldConfig(tilt_deg=0.3), seed=1).side_scene()
+    img = render_side(sc, RenderOptions(), np.random.default_rng(1))
+    truth = side_truth(sc, RenderOptions())
+    run = _run([(3.0, 1.0)])
+    run["frames"] = [{"hash": f"h{k}", "label": f"precheck-side-{k:03d}"} for k in range(8)]
+    run["result"].update(tilt_deg=0.3001, tilt_u_deg=0.0001)
+    assert side_frame_hash(run) == "h0"
+    panel = draw_side_panel(run, img, report.WIDTH)
+    scale = (report.WIDTH // 2) / img.shape[1]
+    assert panel.shape[1] == report.WIDTH and panel.shape[0] == round(img.shape[0] * scale)
+    mid = panel.shape[0] // 2
+    row = panel[mid - 5:mid + 5, :report.WIDTH // 2]
+    for ink, x in ((POLE_INK, truth["pole_x_px"]), (SAMPLE_INK, None)):
+        cols = np.nonzero(_mask(row, ink).any(axis=0))[0]
+        assert cols.size, ink
+        if x is not None:  # the pole's two edges straddle its middle
+            assert cols.min() < x * scale < cols.max()
+    # the report stacks it above the notes; without a side frame, no panel
+    full = report.render_report(run, None, img)
+    assert full.shape[0] == report.render_report(run, None).shape[0] + panel.shape[0]
+    blank = draw_side_panel(run, np.full_like(img, 128), report.WIDTH)
+    assert not _mask(blank[:, :report.WIDTH // 2], SAMPLE_INK).any()
+    assert not _mask(blank[:, :report.WIDTH // 2], POLE_INK).any()
+    run["frames"] = [{"hash": "t0", "label": "align-1-000"}]
+    assert side_frame_hash(run) is None

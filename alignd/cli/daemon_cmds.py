@@ -73,7 +73,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     add("reset", "reconnect the hardware after a fault", cmd_reset)
     p = add("history", "list recent runs", cmd_history)
     p.add_argument("--limit", "-n", type=int, default=20, help="how many (default %(default)s)")
-    p = add("report", "write a run's report: PNG (top view, convergence) and JSON", cmd_report)
+    p = add("report", "write a run's report: PNG (top view, convergence, side view) and JSON",
+            cmd_report)
     p.add_argument("run", type=int, metavar="RUN", help="run id (see alignctl history)")
     p.add_argument("--out", default=".", metavar="DIR", help="output directory (default .)")
 
@@ -433,6 +434,7 @@ def _report_dir(out: Path) -> str | None:
 
 def cmd_report(args: argparse.Namespace) -> int:
     from alignd import report
+    from alignd.report_side import side_frame_hash
 
     out = Path(args.out)
     problem = _report_dir(out)
@@ -453,8 +455,16 @@ def cmd_report(args: argparse.Namespace) -> int:
         except ApiError as exc:
             print(f"alignctl: warning: frame {pick['hash'][:12]} unavailable: {exc}",
                   file=sys.stderr)
+    side_image = None
+    side = side_frame_hash(run)
+    if side is not None:
+        try:
+            side_image = report.decode_png(client.frame(side))
+        except ApiError as exc:
+            print(f"alignctl: warning: side frame {side[:12]} unavailable: {exc}",
+                  file=sys.stderr)
     try:
-        paths = report.write_report(run, out, image)
+        paths = report.write_report(run, out, image, side_image)
     except OSError as exc:
         print(f"alignctl: error: cannot write the report of run {args.run} into {out}: "
               f"{exc.strerror or exc}", file=sys.stderr)

@@ -288,6 +288,7 @@ class WebServer(ThreadingHTTPServer):
         import cv2
 
         from alignd import report
+        from alignd.report_side import side_frame_hash
 
         run_id = int(run["id"])
         key = f"{run.get('status')}:{len(run.get('iteration_records') or [])}"
@@ -302,7 +303,12 @@ class WebServer(ThreadingHTTPServer):
             if data is not None:
                 with contextlib.suppress(ValueError):
                     image = report.decode_png(data)
-        ok, buf = cv2.imencode(".png", report.render_report(run, image))
+        side_image = None
+        side = side_frame_hash(run)
+        if side is not None and (data := self.source.frame(side)) is not None:
+            with contextlib.suppress(ValueError):
+                side_image = report.decode_png(data)
+        ok, buf = cv2.imencode(".png", report.render_report(run, image, side_image))
         if not ok:
             raise ValueError(f"cannot encode the report of run {run_id}")
         png = buf.tobytes()
