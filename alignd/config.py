@@ -241,7 +241,8 @@ class DaemonConfig(Strict):
     watchdog: bool = True
     keep_frames: Literal["all", "report", "none"] = Field("all", description=(
         "which camera frames are kept as PNG files: all (the raw data, tens of MB a run), "
-        "report (the frame nearest 0 deg of every sweep, which the report draws on) or "
+        "report (the frame nearest 0 deg of every sweep and the side pre-check's first, "
+        "which the report draws on) or "
         "none; every frame's hash and features are recorded in the database either way"))
     web: str | None = Field(None, description=(
         "HOST:PORT of the read-only web dashboard and /metrics (off unless set; a bare "
@@ -340,11 +341,16 @@ def continuous_speed(cfg: AligndConfig, frames_per_step: int = 1) -> tuple[float
     return speed, blur
 
 
+# the side pre-check's first frame as a run records it (its frames are precheck-side-NNN)
+SIDE_FIRST_LABEL = "precheck-side-000"
+
+
 def frame_keeper(cfg: AligndConfig) -> Callable[[str], bool]:
     """Whether a frame (by its recorder label) is kept as a file, per ``daemon.keep_frames``.
 
     Sweep frames are labelled ``<kind>-<iteration>-<step>[-<n>]``; "report" keeps, of every
-    sweep, the first frame at the step nearest 0 deg (the one the report draws on)."""
+    sweep, the first frame at the step nearest 0 deg, and the side pre-check's first frame
+    (``precheck-side-000``): the ones the report draws on."""
     mode = cfg.daemon.keep_frames
     if mode != "report":
         return lambda _label: mode == "all"
@@ -356,6 +362,8 @@ def frame_keeper(cfg: AligndConfig) -> Callable[[str], bool]:
         mid = round(p.sweep_deg / p.continuous.speed_deg_s * p.continuous.frame_rate_hz)
 
     def keep(label: str) -> bool:
+        if label == SIDE_FIRST_LABEL:
+            return True
         parts = label.split("-")
         return (len(parts) >= 3 and parts[1].isdigit() and parts[2].isdigit()
                 and int(parts[2]) == mid and (len(parts) < 4 or parts[3] == "0"))
@@ -399,6 +407,7 @@ def run_footprint(cfg: AligndConfig) -> tuple[int, str]:
                               else 0)
     elif cfg.daemon.keep_frames == "report":
         frames = sweeps
+        side_frames = 1 if side is not None else 0
     else:
         frames = 0
 

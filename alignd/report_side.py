@@ -14,6 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from alignd.config import SIDE_FIRST_LABEL
 from alignd.errors import AligndError
 from alignd.textfmt import wrap_words
 from alignd.vision.side import SIGN_CONVENTION, SideMeasurement, measure_tilt
@@ -22,7 +23,6 @@ __all__ = ["SIDE_FIRST_LABEL", "draw_side_panel", "side_frame_hash"]
 
 log = logging.getLogger(__name__)
 
-SIDE_FIRST_LABEL = "precheck-side-000"  # the tilt pre-check's first frame in a run's record
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 SAMPLE_INK = (0, 0, 230)  # red, as alignctl analyze side draws it
 POLE_INK = (0, 170, 0)  # green

@@ -210,7 +210,7 @@ def test_nearly_full_disk_fails_the_write_probe(store: Store) -> None:
         store.check_writable()
 
 
-@pytest.mark.parametrize(("mode", "kept"), [("all", 7), ("report", 2), ("none", 0)])
+@pytest.mark.parametrize(("mode", "kept"), [("all", 9), ("report", 3), ("none", 0)])
 def test_keep_frames_policy_records_every_hash_but_files_per_policy(
         store: Store, mode: str, kept: int) -> None:
     import yaml
@@ -222,15 +222,17 @@ def test_keep_frames_policy_records_every_hash_but_files_per_policy(
     data["daemon"]["keep_frames"] = mode
     data["procedure"].update(sweep_deg=10.0, sweep_steps=3)  # steps at -10, 0, +10 deg
     rec = SqliteRecorder(store, _start(store), keep_frame=frame_keeper(parse_config(data)))
-    labels = ["calibration-x-001", "align-1-000-0", "align-1-001-0", "align-1-001-1",
-              "align-1-002-0", "verify-2-001-0", "verify-2-002-0"]
+    labels = ["precheck-side-000", "precheck-side-001", "calibration-x-001", "align-1-000-0",
+              "align-1-001-0", "align-1-001-1", "align-1-002-0", "verify-2-001-0",
+              "verify-2-002-0"]
     digests = []
     for i, label in enumerate(labels):
         img = np.full((8, 8), i * 10, np.uint8)
         digests.append(rec.frame(img, label))
     on_disk = [d for d in digests if store.frame_path(d).exists()]
     assert len(on_disk) == kept
-    if mode == "report":  # the 0-degree frame of each sweep, the one the report draws on
-        assert on_disk == [digests[2], digests[5]]
+    if mode == "report":  # the 0-degree frame of each sweep and the first side frame: the
+        # ones the report draws on
+        assert on_disk == [digests[0], digests[4], digests[7]]
     run = store.get_run(rec.run_id)
     assert [f["hash"] for f in run["frames"]] == digests  # every hash is recorded anyway
