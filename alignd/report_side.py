@@ -95,8 +95,9 @@ def draw_side_panel(run: dict[str, Any], image: np.ndarray, width: int) -> np.nd
     lines = ["side camera: the tilt pre-check's first frame"]
     tilt, u = res.get("tilt_deg"), res.get("tilt_u_deg")
     if isinstance(tilt, int | float):
-        lines.append(f"tilt {tilt:+.4f}" + (f" +/- {u:.4f}" if isinstance(u, int | float)
-                                            else "") + f" deg (mean of {n} frames, u k=1)")
+        pm = f" +/- {u:.4f}" if isinstance(u, int | float) else ""
+        lines.append(f"tilt {tilt:+.4f}{pm} deg (mean of {n} frame{'' if n == 1 else 's'}, "
+                     "u k=1)")
     if m is not None:
         lines.append(f"this frame: sample {m.sample_angle_deg:+.4f}, pole "
                      f"{m.pole_angle_deg:+.4f} deg")
