@@ -385,17 +385,20 @@ def _half_width(gray: np.ndarray, e: SideEdge, others: list[SideEdge],
 
 
 def _gap_px(e: SideEdge, o: SideEdge) -> float:
-    """How far edge ``o`` lies from ``e``: the least distance over the rows both span (at
-    their ends and middle), 0 where it lies within 3 px of ``e`` all along them (the same
-    edge, found again over part of its rows). Their middles' x differ by the edge's slope
-    times the rows between the middles: on a camera rolled 1 deg, a second find of the
-    sample edge over its upper half sat 6 px from it and held the window to +-4 px."""
+    """How far edge ``o`` lies from ``e``: their middles' distance in x, or 0 where ``o``
+    lies within 3 px of ``e`` all along the rows both span (at their ends and middle):
+    the same edge, found again over part of its rows. The middles' x differ by the edge's
+    slope times the rows between them: on a camera rolled 1 deg, a second find of the
+    sample edge over its upper half sat 6 px from it and held the window to +-4 px.
+    (The least distance over the shared rows for every edge narrowed polished poles'
+    windows where a highlight's flank runs beside the edge over part of it: 33 of 120
+    fits changed, the automatic mode's max 0.00217 -> 0.00384 deg.)"""
     r0, r1 = max(e.rows[0], o.rows[0]), min(e.rows[1], o.rows[1])
-    if r1 <= r0 or not (e.line.vertical and o.line.vertical):
-        return abs(o.x_mid_px - e.x_mid_px)
-    ys = np.array([r0, (r0 + r1) / 2, r1], float)
-    d = np.abs(o.line.minor_at(ys) - e.line.minor_at(ys))
-    return 0.0 if float(d.max()) <= 3.0 else float(d.min())
+    if r1 > r0 and e.line.vertical and o.line.vertical:
+        ys = np.array([r0, (r0 + r1) / 2, r1], float)
+        if float(np.max(np.abs(o.line.minor_at(ys) - e.line.minor_at(ys)))) <= 3.0:
+            return 0.0
+    return abs(o.x_mid_px - e.x_mid_px)
 
 
 def _pole_pair(edges: list[SideEdge], max_width_px: float) -> list[SideEdge]:
