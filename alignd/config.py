@@ -341,8 +341,10 @@ def continuous_speed(cfg: AligndConfig, frames_per_step: int = 1) -> tuple[float
     return speed, blur
 
 
-# the side pre-check's first frame as a run records it (its frames are precheck-side-NNN)
-SIDE_FIRST_LABEL = "precheck-side-000"
+# the labels of the pre-check's frames in a run's record (``<prefix>NNN``), and the side
+# pre-check's first frame, which the report draws
+RIM_FRAME_PREFIX, SIDE_FRAME_PREFIX = "precheck-rim-", "precheck-side-"
+SIDE_FIRST_LABEL = f"{SIDE_FRAME_PREFIX}000"
 
 
 def frame_keeper(cfg: AligndConfig) -> Callable[[str], bool]:
@@ -420,7 +422,8 @@ def run_footprint(cfg: AligndConfig) -> tuple[int, str]:
              + RECORDS_MARGIN_BYTES)
     how = f"{frames} {'top ' if side_frames else ''}frames of {'x'.join(map(str, top_wh))} bytes"
     if side_frames:
-        how += f" and {side_frames} side frames of {'x'.join(map(str, side_wh))} bytes"
+        how += (f" and {side_frames} side frame{'s' if side_frames > 1 else ''} of "
+                f"{'x'.join(map(str, side_wh))} bytes")
     how += (f" (keep_frames {cfg.daemon.keep_frames}) "
             f"+ {RECORDS_MARGIN_BYTES / 2**20:.0f} MiB of records")
     return total, how

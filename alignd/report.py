@@ -33,6 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from alignd.config import SIDE_FRAME_PREFIX
 from alignd.store import atomic_write_bytes, jsonable
 from alignd.textfmt import wrap_words
 from alignd.vision.lens import Lens
@@ -86,9 +87,6 @@ def _centre_record(run: dict[str, Any]) -> dict[str, Any] | None:
         if _find(rec, ("centre_px", "center_px")) is not None:
             return rec
     return None
-
-
-SIDE_FRAME_PREFIX = "precheck-side-"  # the side camera's frames' labels (the pre-check's)
 
 
 def pick_frame(run: dict[str, Any]) -> dict[str, Any] | None:

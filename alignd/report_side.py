@@ -14,12 +14,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from alignd.config import SIDE_FIRST_LABEL
+from alignd.config import SIDE_FIRST_LABEL, SIDE_FRAME_PREFIX
 from alignd.errors import AligndError
 from alignd.textfmt import wrap_words
 from alignd.vision.side import SIGN_CONVENTION, SideMeasurement, measure_tilt
 
-__all__ = ["SIDE_FIRST_LABEL", "draw_side_panel", "side_frame_hash"]
+__all__ = ["draw_side_panel", "side_frame_hash"]
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +91,7 @@ def draw_side_panel(run: dict[str, Any], image: np.ndarray, width: int) -> np.nd
     panel[:view.shape[0], :view_w] = view
     res = run.get("result") or {}
     n = sum(1 for f in run.get("frames") or []
-            if isinstance(f, dict) and str(f.get("label", "")).startswith("precheck-side-"))
+            if isinstance(f, dict) and str(f.get("label", "")).startswith(SIDE_FRAME_PREFIX))
     lines = ["side camera: the tilt pre-check's first frame"]
     tilt, u = res.get("tilt_deg"), res.get("tilt_u_deg")
     if isinstance(tilt, int | float):

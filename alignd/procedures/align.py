@@ -32,7 +32,7 @@ from typing import Any, Literal
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from alignd.config import AligndConfig
+from alignd.config import RIM_FRAME_PREFIX, SIDE_FRAME_PREFIX, AligndConfig
 from alignd.errors import (
     AligndError,
     ConfigError,
@@ -704,15 +704,15 @@ class _Run:
             return RimReading(float(self.tools.eccentricity(grab_fresh(top, top.clock.now()))),
                               None, 1)
         frames = grab_rim_frames(self.rig, top, n, self.p.precheck.rim_turn_deg, self.abort)
-        self._keep("precheck-rim", frames, 0)
+        self._keep(RIM_FRAME_PREFIX, frames, 0)
         info = self.tools.rim(frames, None, None)  # the ellipse alone: no zenith needed
         return RimReading(info.eccentricity, info.eccentricity_u, len(frames))
 
-    def _keep(self, what: str, frames: list[Frame], first: int) -> None:
-        """Record a pre-check's frames as ``<what>-NNN`` (numbered from ``first``): the raw
-        data behind its reading, kept as files as ``daemon.keep_frames`` says."""
+    def _keep(self, prefix: str, frames: list[Frame], first: int) -> None:
+        """Record a pre-check's frames as ``<prefix>NNN`` (numbered from ``first``): the
+        raw data behind its reading, kept as files as ``daemon.keep_frames`` says."""
         for k, f in enumerate(frames, start=first):
-            self.recorder.frame(f.image, f"{what}-{k:03d}")
+            self.recorder.frame(f.image, f"{prefix}{k:03d}")
 
     def _tilt(self, side: Camera, n: int) -> TiltReading:
         """The sample tilt over ``n`` side frames, each exposed after the one before (a
@@ -723,7 +723,7 @@ class _Run:
         standard error."""
         assert self.tools is not None
         frames = grab_frames(side, n, self.abort)
-        self._keep("precheck-side", frames, 0)
+        self._keep(SIDE_FRAME_PREFIX, frames, 0)
         if self.tools.tilt_frames is not None:
             pc = self.p.precheck
             taken = [len(frames)]
@@ -736,7 +736,7 @@ class _Run:
                            f"uncertainty still above {above}",
                            step=taken[0], total=max(pc.tilt_max_frames, n))
                 got = grab_frames(side, k, self.abort)
-                self._keep("precheck-side", got, taken[0])
+                self._keep(SIDE_FRAME_PREFIX, got, taken[0])
                 taken[0] += len(got)
                 return got
 
