@@ -2,8 +2,9 @@
 the sample edge drawn on it, beside the pre-check's numbers.
 
 The record holds the pre-check's mean tilt and every side frame's hash, not each frame's
-fitted lines, so the first frame is measured again here, as ``alignctl analyze side``
-would (in the configured regions), to show where the edges were found.
+fitted lines, so the first frame is measured again here, as the pre-check measured it
+(in the configured regions, the side camera's tone curve undone), to show where the edges
+were found.
 """
 
 from __future__ import annotations
@@ -17,9 +18,11 @@ import numpy as np
 from alignd.config import SIDE_FIRST_LABEL, SIDE_FRAME_PREFIX
 from alignd.errors import AligndError
 from alignd.textfmt import wrap_words
+from alignd.vision.edges import linearise
 from alignd.vision.side import SIGN_CONVENTION, SideMeasurement, measure_tilt
+from drivers.config import ToneCurve
 
-__all__ = ["draw_side_panel", "side_frame_hash"]
+__all__ = ["draw_side_panel", "measure_again", "side_frame_hash"]
 
 log = logging.getLogger(__name__)
 
@@ -54,10 +57,25 @@ def _regions(run: dict[str, Any]) -> tuple[Region | None, Region | None]:
     return _region(side.get("pole_roi_px")), _region(side.get("sample_roi_px"))
 
 
-def _measured(image: np.ndarray, regions: tuple[Region | None, Region | None]
-              ) -> tuple[SideMeasurement | None, str]:
+def _tone_curve(run: dict[str, Any]) -> ToneCurve:
+    """The run config's side camera's ``gamma`` (1: none configured)."""
+    for cam in (run.get("config") or {}).get("cameras") or []:
+        if isinstance(cam, dict) and cam.get("role") == "side":
+            gamma = cam.get("gamma")
+            if gamma == "srgb" or gamma == "bt709":
+                return gamma
+            return float(gamma) if isinstance(gamma, int | float) else 1.0
+    return 1.0
+
+
+def measure_again(run: dict[str, Any], image: np.ndarray
+                  ) -> tuple[SideMeasurement | None, str]:
+    """The side frame ``image`` of ``run`` measured as its pre-check measured it (the run
+    config's regions and the side camera's tone curve), or None and why not."""
+    regions = _regions(run)
     try:
-        return measure_tilt(image, pole_roi_px=regions[0], sample_roi_px=regions[1]), ""
+        return measure_tilt(linearise(image, _tone_curve(run)), pole_roi_px=regions[0],
+                            sample_roi_px=regions[1]), ""
     except AligndError as exc:
         log.info("report: the side frame measured again: %s", exc)
         return None, str(exc)
@@ -69,7 +87,7 @@ def draw_side_panel(run: dict[str, Any], image: np.ndarray, width: int) -> np.nd
     pre-check's tilt beside it."""
     gray = np.asarray(image)
     regions = _regions(run)
-    m, why = _measured(gray, regions)
+    m, why = measure_again(run, gray)
     shown = gray if gray.dtype == np.uint8 else (  # 12 bits in 16: scaled to its peak
         255.0 * gray / max(float(gray.max()), 1.0)).astype(np.uint8)
     view_w = width // 2

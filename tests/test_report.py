@@ -246,3 +246,31 @@ def test_the_side_panel_draws_the_edges_found_in_the_first_side_frame() -> None:
     assert not _mask(blank[:, :report.WIDTH // 2], POLE_INK).any()
     run["frames"] = [{"hash": "t0", "label": "align-1-000"}]
     assert side_frame_hash(run) is None
+
+
+def test_the_side_panel_measures_the_frame_with_the_side_cameras_tone_curve_undone() -> None:
+    """A side camera that encodes its values with a tone curve (cameras[].gamma) has it
+    undone before its frames are measured, in the pre-check and so in the report's panel:
+    on a frame lit unevenly down its height, the angles the panel prints are the
+    linearised frame's, which differ from the coded frame's own."""
+    from alignd.report_side import measure_again
+    from alignd.vision.edges import linearise
+    from alignd.vision.side import measure_tilt
+    from drivers.config import SimWorldConfig
+    from drivers.sim.render import RenderOptions, posed_world, render_side
+
+    sc = posed_world(SimWorldConfig(tilt_deg=0.3), seed=1).side_scene()
+    img = render_side(sc, RenderOptions(), np.random.default_rng(1)).astype(float)
+    lit = img * np.linspace(1.0, 0.45, img.shape[0])[:, None]  # dimmer down the frame
+    coded = np.clip(255 * (lit / 255) ** (1 / 2.2) + 0.5, 0, 255).astype(np.uint8)
+    run = _run([(3.0, 1.0)])
+    run["config"] = {"cameras": [{"role": "top", "gamma": 1.0},
+                                 {"role": "side", "gamma": 2.2}]}
+    m, why = measure_again(run, coded)
+    assert m is not None and why == ""
+    assert m.tilt_deg == measure_tilt(linearise(coded, 2.2)).tilt_deg
+    raw = measure_tilt(coded).tilt_deg
+    assert abs(m.tilt_deg - 0.3) < abs(raw - 0.3)  # (0.00002 against 0.00024 deg off)
+    run["config"]["cameras"][1]["gamma"] = 1.0
+    again = measure_again(run, coded)[0]
+    assert again is not None and again.tilt_deg == raw
