@@ -146,6 +146,16 @@ _NO_EDGE_SIDES = 2  # a refused candidate with this many sides bare of edges: no
 # side, the larger) short of both its corners is not the holder's (see _bare_ends)
 _BARE_END_PX, _BARE_END_SHARE = 8.0, 0.1
 _BARE_PROBE_PX = 6.0  # ... unless the image steps there as the side does, this far across it
+# a side whose crossings bend away from its line smoothly (a cubic along it) by more than this
+# (px rms), _BENT_RATIO times as much as the other sides' median, is not an edge of the
+# holder: a cable's edge cutting a larger rectangle to the holder's size (unseen corpora,
+# seeds 41100 #498 and 111100 #993: 0.43 and 0.24 px, returned 570 and 298 px wrong; 31100
+# #676, a grain's dark patch along a side, 0.37 px, 1.15 px wrong). Over 13 corpora three
+# right holders bent so, each in a JPEG frame (a near-axis side drifting across the
+# coding's blocks); a lens not modelled bends every side alike (see _bent_side)
+_BENT_PX, _BENT_RATIO = 0.18, 6.0
+_BENT_MIN_POINTS, _BENT_MIN_SPAN = 24, 1.0 / 3.0  # ... judged on enough of the side
+_BENT_F = 20.0  # ... and where the bend stands out of the noise (see _bent_side)
 # opposite sides further than this from parallel (deg, in the ideal image): more than a
 # camera that passes the rim pre-check (tilt under 3 deg) makes of a holder (under 1 deg
 # for one a fifth of the field wide); a side on another edge at a slant is looked for
@@ -925,7 +935,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         if why:
             det = _not_ok(det, why)
     if det.ok:
-        bare = _bare_ends(gray, det, lens)
+        bare = _bare_ends(gray, det, lens) or _bent_side(used, corners, lens)
         if bare:
             det = _not_ok(det, bare)
     if polarity is not None and det.ok and pol != polarity:
@@ -1327,6 +1337,49 @@ def _bare_ends(gray: np.ndarray, det: HolderDetection, lens: Lens | None) -> str
                     f"{length:.0f} px) and the image does not step there: an edge inside "
                     "the holder, a label's?")
     return ""
+
+
+def _bent_side(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
+               lens: Lens | None) -> str:
+    """Why one of the sides (their area-method crossings and lines, the windows placed
+    between ``corners``) cannot be a straight edge of the holder, or "": its crossings
+    (the line's inliers) bend away from its line by more than ``_BENT_PX`` (rms of a
+    cubic along the side fitted to their distances from it) and ``_BENT_RATIO`` times the
+    other sides' median bend. Noise and a JPEG block's error scatter about a line; a
+    curved edge (a cable's) bends, and a lens not modelled bends every side, not one. A
+    side seen over a short stretch only (under ``_BENT_MIN_POINTS`` crossings, or spanning
+    under ``_BENT_MIN_SPAN`` of it) is not judged: beside a floor hole that hides most of
+    a side, what shows follows the hole's rim."""
+    c = np.asarray(corners, float)
+    c = c if lens is None else lens.undistort(c)
+    bends = []
+    for i, (ln, pts) in enumerate(sides):
+        bends.append(0.0)
+        if ln is None or pts.xy.shape[0] < _BENT_MIN_POINTS:
+            continue
+        xy = _ideal(pts, lens).xy
+        r = xy @ ln.n - ln.d
+        keep = np.abs(r) < 3.5 * max(ln.rms_px, 0.01)  # (fit_line's own rejection)
+        k = 1 if ln.vertical else 0
+        along = xy[keep, k]
+        span = abs(float(c[(i + 1) % 4, k] - c[i, k]))
+        if along.size < _BENT_MIN_POINTS or float(np.ptp(along)) < _BENT_MIN_SPAN * span:
+            continue
+        t = (along - along.min()) / max(float(np.ptp(along)), 1e-9)
+        rk = r[keep]
+        fit = np.polyval(np.polyfit(t, rk, 3), t)
+        shape, left = float(np.var(rk)) - float(np.var(rk - fit)), float(np.var(rk - fit))
+        # the cubic's two terms beyond the line must explain far more than noise would
+        # (F test; a noisy side's crossings, 0.7 px rms, bent by chance 0.26 px over 64)
+        if shape * (along.size - 4) >= _BENT_F * 2.0 * max(left, 1e-12):
+            bends[i] = float(np.sqrt(max(shape, 0.0)))
+    b = np.asarray(bends)
+    k = int(np.argmax(b))
+    rest = float(np.median(np.delete(b, k)))
+    if b[k] <= _BENT_PX or b[k] < _BENT_RATIO * rest:
+        return ""
+    return (f"side {k}'s edge bends away from a straight line by {b[k]:.2f} px (rms; the "
+            f"others by {rest:.2f} px): a cable's or another curved edge taken for a side?")
 
 
 def _steps_at_both_ends(gray: np.ndarray, ln: Line, ends: tuple[float, float],

@@ -700,6 +700,39 @@ def sample_beside_scene(width_px: float, angle_deg: float,
     return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
 
 
+
+def cable_cut_scene(sag_px: float = 2.0, seed: int = 0, with_holder: bool = True
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 190 x 130 px light holder and, beside it, a light 190 x 320 px rectangle that a
+    dark cable crosses so that the part above the cable is the holder's size; the cable
+    bows by ``sag_px`` over the rectangle's width. Floor 60, holder and rectangle 200,
+    cable 30 DN (9 px wide); blur 0.8 px, noise 1 DN, 1280 x 720 (new corpora drew such
+    cuts: a rectangle 30 % off the holder's size cut to it by a cable). The 8-bit frame,
+    the holder's corners and the cut part's (its lower side the cable's upper edge at the
+    rectangle's ends). ``with_holder``: False leaves the holder out."""
+    w, h = 1280, 720
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    held = rectangle((330.0, 260.0), 190.0, 130.0, 15.0)
+    other = rectangle((880.0, 400.0), 320.0, 190.0, 90.0)  # its long side upright
+    img = np.full((h, w), 60.0)
+    for poly in (held, other) if with_holder else (other,):
+        img += (200.0 - img) * coverage(Polygon(poly), ras, (0, 0, w, h))
+    # the cable's upper edge 130 px below the rectangle's top at its ends, bowing down
+    top, half = 400.0 - 160.0, 95.0
+    xs = np.linspace(0.0, w - 1.0, 400)
+    ys = top + 130.0 + 4.5 + sag_px * (1.0 - ((xs - 880.0) / half) ** 2)
+    pts = np.round(np.column_stack([xs, ys]) * 16).astype(np.int32).reshape(-1, 1, 2)
+
+    def draw(m: np.ndarray, s: int) -> None:
+        cv2.polylines(m, [pts * s], False, 255, thickness=9 * s, lineType=cv2.LINE_AA,
+                      shift=4)
+    img += (30.0 - img) * _aa_mask((h, w), draw)
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8)
+    noise = np.random.default_rng(seed).normal(0, 1.0, img.shape)
+    edge = top + 130.0  # the cable's upper edge at the rectangle's ends
+    cut = np.array([[785.0, top], [975.0, top], [975.0, edge], [785.0, edge]])
+    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held, cut
+
 def _holder_furniture(rng: np.random.Generator, img: np.ndarray, holder: np.ndarray,
                       Lp: float, Sp: float, angle: float, hold: float,
                       params: dict[str, object]) -> None:
