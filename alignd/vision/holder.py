@@ -1345,8 +1345,10 @@ def _bent_side(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
     between ``corners``) cannot be a straight edge of the holder, or "": its crossings
     (the line's inliers) bend away from its line by more than ``_BENT_PX`` (rms of a
     cubic along the side fitted to their distances from it) and ``_BENT_RATIO`` times the
-    other sides' median bend. Noise and a JPEG block's error scatter about a line; a
-    curved edge (a cable's) bends, and a lens not modelled bends every side, not one. A
+    other sides' median bend. Noise scatters about a line; a curved edge (a cable's)
+    bends, a lens not modelled bends every side, not one, and a side drifting slowly
+    across a JPEG's 8 px blocks bends by up to about 0.25 px (three right holders in
+    13 corpora were refused for it). A
     side seen over a short stretch only (under ``_BENT_MIN_POINTS`` crossings, or spanning
     under ``_BENT_MIN_SPAN`` of it) is not judged: beside a floor hole that hides most of
     a side, what shows follows the hole's rim."""

@@ -700,7 +700,6 @@ def sample_beside_scene(width_px: float, angle_deg: float,
     return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
 
 
-
 def cable_cut_scene(sag_px: float = 2.0, seed: int = 0, with_holder: bool = True
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A 190 x 130 px light holder and, beside it, a light 190 x 320 px rectangle that a
@@ -732,6 +731,7 @@ def cable_cut_scene(sag_px: float = 2.0, seed: int = 0, with_holder: bool = True
     edge = top + 130.0  # the cable's upper edge at the rectangle's ends
     cut = np.array([[785.0, top], [975.0, top], [975.0, edge], [785.0, edge]])
     return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held, cut
+
 
 def _holder_furniture(rng: np.random.Generator, img: np.ndarray, holder: np.ndarray,
                       Lp: float, Sp: float, angle: float, hold: float,
