@@ -1385,7 +1385,8 @@ def _bent_side(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
     if b[k] <= _BENT_PX or b[k] < _BENT_RATIO * rest:
         return ""
     return (f"side {k}'s edge bends away from a straight line by {b[k]:.2f} px (rms; the "
-            f"others by {rest:.2f} px): a cable's or another curved edge taken for a side?")
+            f"others by {rest:.2f} px): a cable's or another curved edge taken for a side? "
+            "(or a lens's distortion not modelled: cameras[].lens)")
 
 
 def _steps_at_both_ends(gray: np.ndarray, ln: Line, ends: tuple[float, float],
