@@ -1347,11 +1347,11 @@ def _bent_side(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
     cubic along the side fitted to their distances from it) and ``_BENT_RATIO`` times the
     other sides' median bend. Noise scatters about a line; a curved edge (a cable's)
     bends, a lens not modelled bends every side, not one, and a side drifting slowly
-    across a JPEG's 8 px blocks bends by up to about 0.25 px (three right holders in
-    13 corpora were refused for it). A
-    side seen over a short stretch only (under ``_BENT_MIN_POINTS`` crossings, or spanning
-    under ``_BENT_MIN_SPAN`` of it) is not judged: beside a floor hole that hides most of
-    a side, what shows follows the hole's rim."""
+    across a JPEG's 8 px blocks bends by up to about 0.25 px (three right holders in 13
+    corpora were refused for it). A side seen over a short stretch only (under
+    ``_BENT_MIN_POINTS`` crossings, or spanning under ``_BENT_MIN_SPAN`` of it) is not
+    judged: beside a floor hole that hides most of a side, what shows follows the hole's
+    rim."""
     c = np.asarray(corners, float)
     c = c if lens is None else lens.undistort(c)
     judged: list[tuple[int, np.ndarray, np.ndarray]] = []  # (side, along, distances)
@@ -1360,7 +1360,9 @@ def _bent_side(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray,
             continue
         xy = _ideal(pts, lens).xy
         r = xy @ ln.n - ln.d
-        keep = np.abs(r) < 3.5 * max(ln.rms_px, 0.01)  # (fit_line's own rejection)
+        # outliers (a hole's or a screw's rim) left out at 3.5 times the line's rms, much
+        # as fit_line leaves them out (it uses the median deviation)
+        keep = np.abs(r) < 3.5 * max(ln.rms_px, 0.01)
         k = 1 if ln.vertical else 0
         along = xy[keep, k]
         span = abs(float(c[(i + 1) % 4, k] - c[i, k]))
