@@ -19,6 +19,7 @@ from alignd.vision.edges import edge_points_many
 from alignd.vision.holder import order_corners, track_holder
 from alignd.vision.profile_fit import fit_crossings_blur
 from drivers.sim.render import Polygon, Raster, coverage
+from drivers.sim.scenes import sample_beside_scene
 
 
 def _saturated_holder(hold: float, blur: float, seed: int, floor: float = 150.0
@@ -102,3 +103,21 @@ def test_a_holder_clipped_all_round_is_flagged_for_the_operator() -> None:
     assert ok.ok and ok.clipped_sides == 0 and ok.clip_warning == ""
     assert "warning" not in ok.to_json()
     assert default_tools().track(Frame(fine, 0.0, 1)).warning == ""
+
+
+@pytest.mark.parametrize("levels", [(200.0, 100.0, 340.0), (40.0, 110.0, 300.0),
+                                    (200.0, 60.0, 400.0)])
+@pytest.mark.parametrize("angle", [0.0, 7.0, 30.0])
+def test_a_clipped_sample_beside_a_side_is_not_a_band(levels: tuple[float, float, float],
+                                                      angle: float) -> None:
+    """A white sample 33 px wide along a side, brighter than full scale (corpus #779 of seed
+    31100, #240 of seed 91100): its blurred step flattens at 255, which the band check
+    fitted far better with two steps than one and moved the side in by 1.0-1.9 px (at a
+    blur of 0.9 px: every one of these frames, and returned ok). Bins with clipped pixels
+    are now left out of that fit."""
+    img, held = sample_beside_scene(33.0, angle, levels, seed=1, blur_px=0.9)
+    det = track_holder(img, expected_size_px=(303.2, 193.0))
+    assert det.ok, det.reason
+    assert det.banded_sides == 0
+    t = order_corners(held)
+    assert float(np.max(np.linalg.norm(order_corners(det.corners_px, t) - t, axis=1))) < 0.2

@@ -101,8 +101,9 @@ class SideProfiles:
     """The four sides' profiles across them (:func:`side_profiles`): the bins' mean
     distances to the side (+ outward), mean levels, pixel counts and the pixels' spread
     within them (sums of squares about the bin's mean), each (4, bins); the bins' edges;
-    and the sides' footprint widths (4, 2), a pixel's square seen across the side
-    (:func:`step_response`). Read once, the band check and the neighbour look share it."""
+    the sides' footprint widths (4, 2), a pixel's square seen across the side
+    (:func:`step_response`); and each bin's count of clipped pixels (at the sensor's full
+    scale or at zero). Read once, the band check and the neighbour look share it."""
 
     x: np.ndarray
     m: np.ndarray
@@ -110,13 +111,15 @@ class SideProfiles:
     within: np.ndarray
     bins: np.ndarray
     foot: np.ndarray
+    clipped: np.ndarray
 
     def within_reach(self, reach: float) -> SideProfiles:
         """The bins within ``reach`` px of the side (the edges a multiple of ``_BIN``)."""
         i = np.flatnonzero(np.abs(self.bins) <= reach + 1e-9)
         a, b = int(i[0]), int(i[-1])
         return SideProfiles(self.x[:, a:b], self.m[:, a:b], self.cnt[:, a:b],
-                            self.within[:, a:b], self.bins[a:b + 1], self.foot)
+                            self.within[:, a:b], self.bins[a:b + 1], self.foot,
+                            self.clipped[:, a:b])
 
 
 def profile_bins(reach: float) -> np.ndarray:
@@ -148,7 +151,7 @@ def side_profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None,
     far = float(np.max(np.abs(bins)))
     mids = 0.5 * (bins[:-1] + bins[1:])
     xs, ms, cnt = np.tile(mids, (4, 1)), np.zeros((4, nb)), np.zeros((4, nb))
-    within = np.zeros((4, nb))
+    within, clipped = np.zeros((4, nb)), np.zeros((4, nb))
     for k in range(4):
         # the side's middle, traced in the frame one pixel column (row) at a time
         t = np.linspace(_ALONG[0], _ALONG[1], 16) * length[k]
@@ -186,8 +189,10 @@ def side_profiles(gray: np.ndarray, ci: np.ndarray, lens: Lens | None,
         xs[k, held] = np.bincount(idx, d, nb)[held] / c[held]
         ms[k], cnt[k] = m, c
         within[k] = np.bincount(idx, v * v, nb) - c * m * m
+        if v.size and float(v.max()) <= 255.0 + 1e-3:  # (a float frame above: unclipped)
+            clipped[k] = np.bincount(idx, (v >= 254.5) | (v <= 0.5), nb)
     foot = np.sort(np.abs(n), axis=1)[:, ::-1]
-    return SideProfiles(xs, ms, cnt, within, bins, foot)
+    return SideProfiles(xs, ms, cnt, within, bins, foot, clipped)
 
 
 def steps_model(P: np.ndarray, x: np.ndarray, foot: np.ndarray, steps: int,
@@ -361,8 +366,12 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
     ci = c if lens is None else lens.undistort(c)
     prof = (profiles if profiles is not None else read_sides(gray, c, lens, REACH)
             ).within_reach(REACH)
-    x, m, cnt, foot = prof.x, prof.m, prof.cnt, prof.foot
-    within = prof.within.sum(axis=1)
+    x, m, foot = prof.x, prof.m, prof.foot
+    # bins with clipped pixels are left out: a step blurred and clipped at full scale
+    # flattens abruptly, which two steps fit far better than one (a white sample strip
+    # clipped beside a holder's side read as a band, and the side moved 0.95 px in)
+    cnt = np.where(prof.clipped > 0, 0.0, prof.cnt)
+    within = np.where(prof.clipped > 0, 0.0, prof.within).sum(axis=1)
     usable = cnt.sum(axis=1) >= 200
     if not usable.any():
         return []
