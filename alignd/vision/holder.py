@@ -78,9 +78,13 @@ log = logging.getLogger(__name__)
 # RMS near 1 (see tests/test_vision_holder_sigma.py)
 _SIDE_COMMON_PX = 0.02
 _AGREE_PX, _AGREE_SIGMA = 0.05, 3.0  # profile vs area corners: allowed difference
-# ... and where they differ more, the area method's corners are kept with this share of
-# the difference in their uncertainty (see _finish)
+# ... and where they differ more, this share of the difference counts in the corners'
+# uncertainty; the refined corners are returned only where the two lie within
+# _REFINED_APART_PX (the area method's own errors on the corpora reach 0.7 px; farther
+# apart, one of them is on another edge: an 8 px sample strip beside a side along the
+# pixel columns, 1.0-2.2 px, the refined corners 1.0-2.2 px off; see _finish)
 _DISAGREE_SHARE = 0.5
+_REFINED_APART_PX = 0.9
 # a side blurred more than this (Gaussian width, px) reaches the tails of the area method's
 # +-5 px window: refined corners it rejects are checked once more against its +-9 px ones
 # (1.0 and 1.2 alike on the corpus)
@@ -870,8 +874,9 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                         size_tolerance)
         # two estimates of the same corners must agree within the area method's
         # uncertainty (and the penumbra the profile fit modelled, which the area method
-        # reads as edge); where they do not, the model did not fit (a hole in the
-        # window, a penumbra not modelled) and the model-free area method's corners stand
+        # reads as edge); where they do not, one of them erred (the model did not fit:
+        # a hole in the window, a penumbra not modelled; or the area method did, below),
+        # and the checks that follow decide which corners, if any, are returned
         moved = _shift(det3.corners_px, det.corners_px) if det3.ok else math.inf
         agree = moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px + bent
         if det3.ok and not agree and _clipped_share(gray, used) > _CLIP_SHARE:
@@ -923,15 +928,22 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             elif det.ok:
                 why = _rough_side(det.edge_rms_px)
             if det.ok and not why and det3.ok:
-                # two estimates of the corners disagree and which of them errs is not
-                # known (the area method errs as well under a steep light or a soft
-                # side's overflowing window: 10 of 10 such corpus holders, their kept
-                # corners 0.2-0.7 px off, were nearer the refined ones): half the
-                # difference counts in the corners' uncertainty, as a band's move does
-                # (_off_the_bands)
+                # two estimates of the corners disagree, neither refused. The area
+                # method errs too (under a steep light, a soft side's overflowing window,
+                # a noisy floor, JPEG blocks; docs/vision.md, "Two fits that disagree"):
+                # the refined corners are returned where they lie within 0.9 px of the
+                # area method's and their sides fit at least as well, or clip (the area
+                # method reads the clip as the level; the profile fit leaves those pixels
+                # out, so it fits fewer), unconfirmed (no side blurs: tracking measures
+                # them again). Half the difference counts in the corners' uncertainty
+                # either way, as a band's move does (_off_the_bands)
+                apart = _shift(det3.corners_px, det.corners_px)
+                if apart <= _REFINED_APART_PX and (
+                        det3.fit_sigma_px <= det.fit_sigma_px
+                        or _clipped_share(gray, used) > _CLIP_SHARE):
+                    det = det3
                 det = replace(det, corner_sigma_px=math.hypot(
-                    det.corner_sigma_px, _DISAGREE_SHARE * _shift(det3.corners_px,
-                                                                  det.corners_px)))
+                    det.corner_sigma_px, _DISAGREE_SHARE * apart))
         if why:
             det = _not_ok(det, why)
     if det.ok:
