@@ -58,6 +58,7 @@ __all__ = [
     "random_rim_scene",
     "random_side_scene",
     "random_top_scene",
+    "strip_under_scene",
 ]
 
 TopCategory = Literal["plain", "distractors", "shadows", "optics", "jpeg", "12-bit", "everything"]
@@ -731,6 +732,36 @@ def cable_cut_scene(sag_px: float = 2.0, seed: int = 0, with_holder: bool = True
     edge = top + 130.0  # the cable's upper edge at the rectangle's ends
     cut = np.array([[785.0, top], [975.0, top], [975.0, edge], [785.0, edge]])
     return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held, cut
+
+
+def strip_under_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A grey 347 x 195 px holder (95 DN) on a dark disc (35 DN) with a light label (165 DN,
+    175 x 102 px) on it and a light strip (205 DN, 181 px wide) passing under it, from
+    17 px below the frame's top to past its bottom. The strip's top end, its two sides
+    above the holder and the label's lower edge frame a quadrilateral of about the
+    holder's size (363-366 x 181 px; corpus #890 of seed 71100 at 800 x 600 drew such a
+    scene and returned that quadrilateral ok, 233 px off). Blur 1 px, noise 1 DN,
+    800 x 600. The 8-bit frame, the holder's corners and the quadrilateral's."""
+    w, h = 800, 600
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    held = rectangle((330.4, 335.2), 347.0, 195.0, 1.0)
+    strip = rectangle((290.3, 350.0), 660.0, 181.0, 92.0)
+    label = rectangle((332.5, 334.1), 175.0, 102.0, 1.0)
+    img = np.full((h, w), 35.0)
+    for poly, level in ((strip, 205.0), (held, 95.0), (label, 165.0)):
+        img += (level - img) * coverage(Polygon(poly), ras, (0, 0, w, h))
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
+    img += np.random.default_rng(seed).normal(0, 1.0, img.shape).astype(np.float32)
+    by_y = strip[np.argsort(strip[:, 1])]
+    top, low = by_y[:2], by_y[2:]
+    lb = label[np.argsort(label[:, 1])[2:]]  # the label's lower edge
+    ends = []
+    for p in top:  # where the strip's sides meet the label's lower edge
+        q = low[np.argmin(np.linalg.norm(low - p, axis=1))]
+        t = np.linalg.solve(np.array([q - p, lb[0] - lb[1]]).T, lb[0] - p)[0]
+        ends.append(p + t * (q - p))
+    quad = np.array([top[0], top[1], ends[1], ends[0]])
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), held, quad
 
 
 def _holder_furniture(rng: np.random.Generator, img: np.ndarray, holder: np.ndarray,
