@@ -1358,17 +1358,7 @@ def _bare_ends(gray: np.ndarray, det: HolderDetection, lens: Lens | None) -> str
     four corpora were bare for at most 11 px). The image tells them apart: across the
     line at a bare end, a side still steps as it does where it was measured."""
     corners = det.corners_px if lens is None else lens.undistort(det.corners_px)
-    for i, ln in enumerate(det.lines):
-        if ln is None:
-            continue
-        # the side's two corners: the two nearest its line (a hint reorders the corners)
-        a, b = corners[np.argsort(np.abs(corners @ ln.n - ln.d))[:2]]
-        k = 1 if ln.vertical else 0
-        lo, hi = sorted((float(a[k]), float(b[k])))
-        length = float(np.hypot(*(b - a)))
-        if hi - lo < 1e-6:
-            continue
-        per_major = length / (hi - lo)  # px along the side per px of its major axis
+    for i, ln, (lo, hi), length, per_major in _side_spans(det.lines, corners):
         bare = min(ln.major_span[0] - lo, hi - ln.major_span[1]) * per_major
         if bare <= _WIDE_MARGIN + max(_BARE_END_PX, _BARE_END_SHARE * length):
             continue
@@ -1378,6 +1368,22 @@ def _bare_ends(gray: np.ndarray, det: HolderDetection, lens: Lens | None) -> str
                     f"{length:.0f} px) and the image does not step there: an edge inside "
                     "the holder, a label's?")
     return ""
+
+
+def _side_spans(lines: tuple[Line | None, ...], corners: np.ndarray
+                ) -> Iterator[tuple[int, Line, tuple[float, float], float, float]]:
+    """Each side with a line: its index, the line, its corners' span along the line's
+    major axis (the two corners nearest the line: a hint reorders the corners), its
+    length and the px along it per px of that axis."""
+    for i, ln in enumerate(lines):
+        if ln is None:
+            continue
+        a, b = corners[np.argsort(np.abs(corners @ ln.n - ln.d))[:2]]
+        k = 1 if ln.vertical else 0
+        lo, hi = sorted((float(a[k]), float(b[k])))
+        length = float(np.hypot(*(b - a)))
+        if hi - lo >= 1e-6:
+            yield i, ln, (lo, hi), length, length / (hi - lo)
 
 
 def _one_bare_end(gray: np.ndarray, det: HolderDetection, lens: Lens | None) -> str:
@@ -1392,16 +1398,7 @@ def _one_bare_end(gray: np.ndarray, det: HolderDetection, lens: Lens | None) -> 
     beside a side the hole hides at one end reads so too, until the slant check measures
     it again on the holder's edge (:func:`_not_askew`; ``tests/test_vision_holder_hole``)."""
     corners = det.corners_px if lens is None else lens.undistort(det.corners_px)
-    for i, ln in enumerate(det.lines):
-        if ln is None:
-            continue
-        a, b = corners[np.argsort(np.abs(corners @ ln.n - ln.d))[:2]]
-        k = 1 if ln.vertical else 0
-        lo, hi = sorted((float(a[k]), float(b[k])))
-        length = float(np.hypot(*(b - a)))
-        if hi - lo < 1e-6:
-            continue
-        per_major = length / (hi - lo)
+    for i, ln, (lo, hi), length, per_major in _side_spans(det.lines, corners):
         ends = ((ln.major_span[0] - lo) * per_major, (hi - ln.major_span[1]) * per_major)
         if max(ends) <= _WIDE_MARGIN + _ONE_BARE_SHARE * length:
             continue
