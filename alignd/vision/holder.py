@@ -81,8 +81,8 @@ _AGREE_PX, _AGREE_SIGMA = 0.05, 3.0  # profile vs area corners: allowed differen
 # ... and where they differ more, this share of the difference counts in the corners'
 # uncertainty; the refined corners are returned only where the two lie within
 # _REFINED_APART_PX (the area method's own errors on the corpora reach 0.7 px; farther
-# apart, one of them is on another edge: an 8 px sample strip beside a side along the
-# pixel columns, 1.0-2.2 px, the refined corners 1.0-2.2 px off; see _finish)
+# apart, one of them is on another edge: beside an 8 px sample strip along a side on the
+# pixel columns the two lay 1.0-2.2 px apart, the refined corners as far off; see _finish)
 _DISAGREE_SHARE = 0.5
 _REFINED_APART_PX = 0.9
 # a side blurred more than this (Gaussian width, px) reaches the tails of the area method's
