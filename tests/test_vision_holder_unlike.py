@@ -448,6 +448,8 @@ def test_opposite_widths_held_alike_rule() -> None:
     assert held is not None and np.allclose(held, [1.90, 1.91, 1.80, 1.91])
     assert holder._alike_opposite_blurs(np.array([1.9, 2.1, 1.8, 2.2])) is None
     assert holder._alike_opposite_blurs(np.array([0.5, 0.6, 0.5, 0.6])) is None
+    # sharp edges' widths are ill-determined (a faint holder's, 13 DN steps): left alone
+    assert holder._alike_opposite_blurs(np.array([0.61, 0.79, 1.12, 0.49])) is None
 
 
 # the random generator's state just before corpus scene #979 of seed 71100 at 800 x 600

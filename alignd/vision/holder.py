@@ -127,8 +127,11 @@ _SECOND_RMS_FACTOR = 4.0 / 3.0
 # cannot be one flat face's (see _unlike_opposite_blurs)
 _BLUR_UNLIKE_PX, _BLUR_UNLIKE_RATIO = 1.2, 3.0
 # opposite sides fitted more than this far apart in width (px) are fitted again with the
-# sharper one's width (see _alike_opposite_blurs)
+# sharper one's width, where that is a blur of at least _BLUR_ALIKE_MIN_PX (a sharp
+# edge's width, near the pixel's own footprint, is ill-determined: a faint holder's
+# sides, 13 DN steps, read 0.15-1.1 px at a blur of about 0.6; see _alike_opposite_blurs)
 _BLUR_ALIKE_PX = 0.4
+_BLUR_ALIKE_MIN_PX = 1.0
 # tracking with a lens: the fine windows lie on the chord between a side's corners, which
 # a distorted side bows away from; up to this far in its middle (px) they still catch it
 # as the coarse search's best-fit line would (corpus lens frames: 90 % bow under 0.7 px;
@@ -1113,18 +1116,22 @@ def _rough_side(rms: tuple[float, ...]) -> str:
 
 def _alike_opposite_blurs(widths: np.ndarray) -> np.ndarray | None:
     """The sides' edge widths (``widths``, corner k to k + 1) with each opposite pair that
-    differs by more than ``_BLUR_ALIKE_PX`` held at the sharper one's, or None where none
-    does. One lens blurs a flat face's opposite sides alike; a side fitted much softer has
-    taken something beside its edge into the blur (a penumbra, a shadow's band, a floor's
-    slope), which moves the edge too. Over 13 corpora the 20 detections with a side fitted
-    0.4 px or more wider than the other three's median had a median error of 0.16-0.35 px,
-    up to 0.91, against 0.016 for the rest; fitted again with the width held (the profile
-    fit's ``blur``), 0.83 -> 0.33 px (71100 #979), 0.91 -> 0.84 (81100 #776)."""
+    differs by more than ``_BLUR_ALIKE_PX`` held at the sharper one's (where that is
+    ``_BLUR_ALIKE_MIN_PX`` or more), or None where none does. One lens blurs a flat face's
+    opposite sides alike; a side fitted much softer has taken something beside its edge
+    into the blur (a penumbra, a shadow's band, a floor's slope), which moves the edge
+    too. Over 13 corpora the 20 detections with a side fitted 0.4 px or more wider than
+    the other three's median had a median error of 0.16-0.35 px, up to 0.91, against 0.016
+    for the rest; fitted again with the width held (the profile fit's ``blur``), 0.83 ->
+    0.33 px (71100 #979), 0.91 -> 0.84 (81100 #776)."""
     w = np.asarray(widths, float)
     out = w.copy()
     for a, b in ((0, 2), (1, 3)):
-        if math.isfinite(w[a]) and math.isfinite(w[b]) and abs(w[a] - w[b]) > _BLUR_ALIKE_PX:
-            out[a] = out[b] = min(w[a], w[b])
+        if not (math.isfinite(w[a]) and math.isfinite(w[b])):
+            continue
+        lo, hi = min(w[a], w[b]), max(w[a], w[b])
+        if lo >= _BLUR_ALIKE_MIN_PX and hi - lo > _BLUR_ALIKE_PX:
+            out[a] = out[b] = lo
     return None if np.array_equal(out, w) else out
 
 
