@@ -894,7 +894,9 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
         # and the checks that follow decide which corners, if any, are returned
         moved = _shift(det3.corners_px, det.corners_px) if det3.ok else math.inf
         agree = moved <= _AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px + bent
-        if det3.ok and not agree and _clipped_share(gray, used) > _CLIP_SHARE:
+        # (read once: the disagreement below asks again)
+        clipped = det3.ok and not agree and _clipped_share(gray, used) > _CLIP_SHARE
+        if clipped:
             agree = moved <= (_AGREE_PX + _AGREE_SIGMA * det.fit_sigma_px
                               + max(_CLIP_AGREE_PX, _clip_offset(used, fine, widths)))
         if (det3.ok and not agree and hw == _HALF_WIDTH
@@ -954,8 +956,7 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                 # either way, as a band's move does (_off_the_bands)
                 apart = _shift(det3.corners_px, det.corners_px)
                 if apart <= _REFINED_APART_PX and (
-                        det3.fit_sigma_px <= det.fit_sigma_px
-                        or _clipped_share(gray, used) > _CLIP_SHARE):
+                        det3.fit_sigma_px <= det.fit_sigma_px or clipped):
                     det = det3
                 det = replace(det, corner_sigma_px=math.hypot(
                     det.corner_sigma_px, _DISAGREE_SHARE * apart))
