@@ -274,6 +274,9 @@ def test_stalled_and_excess_connections_are_cut() -> None:
                     s.sendall(b"X")
                     time.sleep(0.1)
             assert time.monotonic() - t0 < 2.0
+        # (the cut dribbler's thread frees its slot after the cut: until then a new
+        # connection is refused at once and closed, and a send to it breaks the pipe)
+        wait_until(answers)
         # a body that stops arriving part-way is cut too, and the daemon is unaffected
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
             s.settimeout(3.0)
