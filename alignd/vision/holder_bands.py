@@ -206,15 +206,20 @@ def steps_model(P: np.ndarray, x: np.ndarray, foot: np.ndarray, steps: int,
     f = P[:, 0:1] + P[:, 1:2] * x
     cols = [np.ones_like(f), x, np.zeros_like(f)]
     last = []
+    # every step's response in one call (B, steps, bins): the arrays are small
+    blurs = np.repeat(s, steps, axis=1)
+    if own_blur:
+        blurs[:, -1] = P[:, -1]
+    SS, SS1, SS2 = step_response(x[:, None, :] - P[:, 4:4 + 2 * steps:2, None],
+                                 blurs[:, :, None], foot[:, None, 0:1], foot[:, None, 1:2])
     for j in range(steps):
-        c, d = P[:, 3 + 2 * j:4 + 2 * j], P[:, 4 + 2 * j:5 + 2 * j]
-        sj = P[:, -1:] if own_blur and j == steps - 1 else s
-        S, S1, S2 = step_response(x - d, sj, foot[:, 0:1], foot[:, 1:2])
+        c = P[:, 3 + 2 * j:4 + 2 * j]
+        S, S1, S2 = SS[:, j], SS1[:, j], SS2[:, j]
         f = f + c * S
-        if sj is s:
-            cols[2] = cols[2] + c * s * S2  # dS/ds = s d2S/dd2
+        if own_blur and j == steps - 1:
+            last = [c * P[:, -1:] * S2]
         else:
-            last = [c * sj * S2]
+            cols[2] = cols[2] + c * s * S2  # dS/ds = s d2S/dd2
         cols += [S, -c * S1]
     return f, np.stack(cols + last, axis=2)
 

@@ -114,13 +114,18 @@ def step_response(d: np.ndarray, s: float | np.ndarray, wa: float | np.ndarray,
     """
     wb = np.maximum(wb, 0.02)
     p, q = (wa + wb) / 2, (wa - wb) / 2
-    # the four corners of the trapezoid at once (a leading axis), signs +, -, -, +
-    t = np.stack(np.broadcast_arrays(d + p, d + q, d - q, d - p))
-    sc = np.broadcast_to(s, t.shape[1:])
-    z = t / sc
+    # the four corners of the trapezoid at once (a leading axis), signs +, -, -, +; written
+    # in place (the arrays are small: numpy's per-call cost is most of this function's)
+    d = np.asarray(d, float)
+    t = np.empty((4, *np.broadcast_shapes(d.shape, np.shape(s), np.shape(p))))
+    np.add(d, p, out=t[0])
+    np.add(d, q, out=t[1])
+    np.subtract(d, q, out=t[2])
+    np.subtract(d, p, out=t[3])
+    z = t / s
     Phi = ndtr(z)
-    sphi = np.exp(-0.5 * z * z) * (sc * _INV_SQRT_2PI)
-    G = (t * t + sc * sc) * Phi + t * sphi
+    sphi = np.exp(-0.5 * z * z) * (s * _INV_SQRT_2PI)
+    G = (t * t + s * s) * Phi + t * sphi
     G1 = t * Phi + sphi
 
     def second_difference(a: np.ndarray) -> np.ndarray:
