@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from alignd.vision import holder, order_corners, track_holder
+from alignd.vision import edges, holder, order_corners, track_holder
 from alignd.vision.edges import despeckle
 from alignd.vision.lens import Lens
 from drivers.sim.scenes import TOP_CATEGORIES, random_top_scene
@@ -41,6 +41,27 @@ def test_a_speck_takes_its_neighbours_median_and_nothing_else_changes() -> None:
     assert despeckle(img) is img  # no speck: the frame itself, no copy
     as_float = spotted.astype(np.float32)  # a float frame (16-bit or converted) too
     assert despeckle(as_float)[20, 10] == np.median(np.delete(img[19:22, 9:12].ravel(), 4))
+
+
+def test_specks_on_the_rows_where_the_frame_is_cut_into_stripes_are_found_alone() -> None:
+    # the mask is computed in stripes of rows (each with its neighbours' rows): a speck on
+    # a stripe's first or last row, or beside one, is judged against all 8 neighbours
+    rows = edges._SPECK_ROWS
+    rng = np.random.default_rng(3)
+    img = np.clip(np.rint(100 + rng.normal(0, 2.0, (3 * rows + 7, 50))), 0, 255)
+    spots = [(rows - 1, 10), (rows, 20), (2 * rows - 1, 30), (2 * rows, 40), (3 * rows, 5),
+             (0, 25), (3 * rows + 6, 45)]
+    for dtype in (np.uint8, np.float32):
+        spotted = img.astype(dtype)
+        for k, (y, x) in enumerate(spots):
+            spotted[y, x] = 255 if k % 2 else 0
+        # a bright dot two pixels high across a stripe's cut: each pixel of it has a
+        # bright neighbour, in the other stripe; neither is a speck
+        spotted[rows - 1:rows + 1, 3] = 180
+        spotted[2 * rows - 1:2 * rows + 1, 47] = 0
+        mask = edges.speck_mask(spotted)
+        assert mask.dtype == spotted.dtype
+        assert sorted(zip(*np.nonzero(mask), strict=True)) == sorted(spots)
 
 
 def _corpus_rms(n: int, share: float) -> float:
