@@ -706,6 +706,25 @@ def samples_beside(quick: bool) -> list[Target]:
             for label, levels in BETWEEN_LEVELS.items()]
 
 
+SQUARE_PX = (200.0, 182.0)  # a nearly square holder (aspect 1.1)
+
+
+def wide_strips(quick: bool) -> list[Target]:
+    """A sample strip 26-40 px wide along a nearly square holder (200 x 182 px), of either
+    contrast: holder and strip make a rectangle within the size tolerance with its sides'
+    roles swapped, deeper than the inner-step look reaches, and 9 of 18 such frames were
+    returned whole, 26-40 px wrong (docs/vision.md, "A strip wider than the look").
+    Strips 26, 32 and 40 px wide (the full run adds 48 and 56) at several angles."""
+    widths = (26.0, 32.0, 40.0) if quick else (26.0, 32.0, 40.0, 48.0, 56.0)
+    angles = (12.0, 37.0) if quick else (12.0, 37.0, 71.0, -20.0)
+    frames = ((*sample_beside_scene(wd, ang, levels, seed=k, blur_px=0.6, size_px=SQUARE_PX),
+               None)
+              for k, (levels, wd, ang) in enumerate(
+                  (lv, wd, ang) for lv in ((170.0, 45.0, 80.0), (60.0, 150.0, 240.0))
+                  for wd in widths for ang in angles))
+    return [_drawn("wide strip beside a nearly square holder", frames, SQUARE_PX)]
+
+
 FAINT_LEVELS = {"13 DN darker": 177.0, "13 DN lighter": 203.0}  # on our renderer's 190 DN disc
 
 
@@ -1076,6 +1095,7 @@ def main(argv: list[str] | None = None) -> int:
         targets += hard_shadows(args.quick)
         targets += plates(args.quick)
         targets += samples_beside(args.quick)
+        targets += wide_strips(args.quick)
         targets += faint_holders(args.quick)
         targets += camera_frames(6 if args.quick else 60, args.seed + 400)
     if "side" in want:

@@ -65,7 +65,7 @@ from alignd.vision.holder_search import (
     voted_either_way,
 )
 from alignd.vision.holder_square import parallel_to, square_sides
-from alignd.vision.holder_steps import inner_step, side_frame
+from alignd.vision.holder_steps import FAR_PX, InnerStep, inner_step, side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import fit_profiles
 
@@ -85,6 +85,10 @@ _AGREE_PX, _AGREE_SIGMA = 0.05, 3.0  # profile vs area corners: allowed differen
 # pixel columns the two lay 1.0-2.2 px apart, the refined corners as far off; see _finish)
 _DISAGREE_SHARE = 0.5
 _REFINED_APART_PX = 0.9
+# a strip wider than inner_step looks along a side (_wide_strip): that side's length within
+# this share of one expected size, the step looked for this far beyond the depth the other
+# puts the holder's side at, and found within this share of that depth
+_WIDE_STRIP_FIT, _WIDE_STRIP_BEYOND_PX, _WIDE_STRIP_SLACK = 0.05, 8.0, 0.15
 # a side blurred more than this (Gaussian width, px) reaches the tails of the area method's
 # +-5 px window: refined corners it rejects are checked once more against its +-9 px ones
 # (1.0 and 1.2 alike on the corpus)
@@ -615,7 +619,7 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
     without an expected size there is no such check."""
     if expected_size_px is None:
         return det
-    step = inner_step(gray, det.corners_px)
+    step = inner_step(gray, det.corners_px) or _wide_strip(gray, det, lens, expected_size_px)
     if step is None:
         return det
     k = step.side
@@ -656,6 +660,30 @@ def _not_a_shadow(gray: np.ndarray, det: HolderDetection, polarity: str | None,
         log.debug("top image: %s; measured at the inner step, beside a strip", why)
         return inner
     return _not_ok(replace(det, reason=""), why)
+
+
+def _wide_strip(gray: np.ndarray, det: HolderDetection, lens: Lens | None,
+                expected_size_px: tuple[float, float]) -> InnerStep | None:
+    """A step inside a side deeper than :func:`inner_step` looks (``FAR_PX``), where the
+    expected size puts the holder's side: a strip wider than that along a side of a
+    nearly square holder (a sample beside it, 26-40 px on a 200 x 182 px holder) makes a
+    rectangle within the size tolerance with its sides' roles swapped, and it was
+    returned whole. Looked for only on a side whose length is one expected size (within
+    ``_WIDE_STRIP_FIT``) while the extent across it exceeds the other by more than
+    ``FAR_PX``; the step must lie within ``_WIDE_STRIP_SLACK`` of that depth."""
+    c = np.asarray(det.corners_px, float)
+    lengths = _side_lengths(c if lens is None else lens.undistort(c))
+    for k in range(4):
+        along = float(lengths[k])
+        across = float(lengths[(k + 1) % 4] + lengths[k - 1]) / 2
+        for e_along, e_across in (expected_size_px, expected_size_px[::-1]):
+            depth = across - e_across
+            if abs(along / e_along - 1.0) > _WIDE_STRIP_FIT or depth <= FAR_PX:
+                continue
+            step = inner_step(gray, c, side=k, far_px=depth + _WIDE_STRIP_BEYOND_PX)
+            if step is not None and abs(step.depth_px - depth) <= _WIDE_STRIP_SLACK * depth:
+                return step
+    return None
 
 
 def _beside_a_strip(det: HolderDetection, lens: Lens | None) -> bool:

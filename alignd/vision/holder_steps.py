@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["InnerStep", "inner_step", "side_frame", "side_ratios"]
+__all__ = ["FAR_PX", "InnerStep", "inner_step", "side_frame", "side_ratios"]
 
 # levels are medians over positions along the middle 60 % of a side, each the mean of a
 # few pixels at a depth band (px, + outward): outside, just inside (and deeper inside)
@@ -30,7 +30,7 @@ _OUT, _IN = (4.0, 7.0), (-7.0, -4.0)
 # it): a band only 3-7 px wide (a hard shadow beside a sharp holder) lies there
 _NEAR = (-3.5, -2.0)
 _SETTLED = 0.1  # sharp: the outside's level 2-3.5 px out within this of the step of 4-7 px
-_FAR_PX = 24.0  # the inner step is looked for this deep (at most 0.35 of the extent across)
+FAR_PX = 24.0  # the inner step is looked for this deep (at most 0.35 of the extent across)
 # the level just inside a side differing from the level deeper inside and from the
 # holder's interior (the median over its middle) the same way as the side's own step, by
 # at least this fraction of that step, flags the side (docs/vision.md: the corpus' values;
@@ -99,10 +99,10 @@ def side_frame(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return edge, length, n
 
 
-def side_ratios(gray: np.ndarray, corners: np.ndarray
+def side_ratios(gray: np.ndarray, corners: np.ndarray, far_px: float = FAR_PX
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per side of ``corners`` (4, 2, cyclic order): the level just inside it minus the
-    level deeper inside (``_FAR_PX``, at most 0.35 of the extent across), and minus the
+    level deeper inside (``far_px``, at most 0.35 of the extent across), and minus the
     holder's interior level, each in size over the side's own step (0 where the two
     differ in sign, or either is under ``_MIN_STEP_DN``, or the holder is too narrow);
     and how deep "just inside" was (px: 4 for a soft side, 2 for a sharp one, see
@@ -112,7 +112,7 @@ def side_ratios(gray: np.ndarray, corners: np.ndarray
     zero = np.zeros(4)
     if length.min() < 8.0:
         return zero, zero, np.full(4, -_IN[1])
-    far = np.minimum(_FAR_PX, 0.35 * length[[1, 2, 3, 0]])  # the extent across each side
+    far = np.minimum(far_px, 0.35 * length[[1, 2, 3, 0]])  # the extent across each side
     frac = np.linspace(0.2, 0.8, 16)
     band = np.arange(4.0)
     # depths per side: just inside, outside, the deep band (from -far, 4 px), and nearer
@@ -148,20 +148,22 @@ def side_ratios(gray: np.ndarray, corners: np.ndarray
     return out_r[0], out_r[1], np.where(sharp, -_NEAR[1], -_IN[1])
 
 
-def inner_step(gray: np.ndarray, corners: np.ndarray) -> InnerStep | None:
+def inner_step(gray: np.ndarray, corners: np.ndarray, *, side: int | None = None,
+               far_px: float = FAR_PX) -> InnerStep | None:
     """The side of the quadrilateral ``corners`` (4, 2, in cyclic order) whose inside
     band differs most, one way, from both the holder's level (its interior's median) and
     the level deeper inside, with a step between the two: a shadow's edge (or a strip's
     along the holder) taken for the side; else None. (Tracking runs it every frame: the four
-    sides' bands are read in one go, about 0.3 ms.)"""
+    sides' bands are read in one go, about 0.3 ms.) ``side``: that side only; ``far_px``:
+    how deep to look (:data:`FAR_PX`; at most 0.35 of the extent across)."""
     c = np.asarray(corners, float)
-    r_deep, r_level, start = side_ratios(gray, c)
+    r_deep, r_level, start = side_ratios(gray, c, far_px)
     ratio = np.minimum(r_deep, r_level)
-    k = int(np.argmax(ratio))
+    k = int(np.argmax(ratio)) if side is None else side
     if ratio[k] < _EDGE_RATIO:
         return None
     edge, length, n = side_frame(c)
-    far = min(_FAR_PX, 0.35 * float(length[(k + 1) % 4]))
+    far = min(far_px, 0.35 * float(length[(k + 1) % 4]))
     found = _inner_depth(gray, c[k], edge[k] / length[k], n[k], float(length[k]), far,
                          float(start[k]))
     if found is None:

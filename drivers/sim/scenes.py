@@ -676,20 +676,22 @@ def plate_scene(insets_px: tuple[float, float, float, float], angle_deg: float,
 
 def sample_beside_scene(width_px: float, angle_deg: float,
                         levels: tuple[float, float, float] = (60.0, 150.0, 240.0),
-                        seed: int = 0, blur_px: float = 0.8
+                        seed: int = 0, blur_px: float = 0.8,
+                        size_px: tuple[float, float] = (303.2, 193.0)
                         ) -> tuple[np.ndarray, np.ndarray]:
-    """A 303 x 193 px holder in a 1280 x 720 frame with a sample ``width_px`` wide along
-    its first long side (-v of the holder's frame, u along its long side at
-    ``angle_deg``); ``levels``: disc, holder, sample DN, the holder between the other two
-    where the random corpus never puts it (its samples contrast the other way from the
-    disc against the holder): a grey holder on a dark turntable with a white sample, and
-    the like. Blur ``blur_px``, noise 1.5 DN. The 8-bit frame and the holder's corners."""
+    """A holder of ``size_px`` (303 x 193 px) in a 1280 x 720 frame with a sample
+    ``width_px`` wide along its first long side (-v of the holder's frame, u along its long
+    side at ``angle_deg``); ``levels``: disc, holder, sample DN, the holder between the
+    other two where the random corpus never puts it (its samples contrast the other way
+    from the disc against the holder): a grey holder on a dark turntable with a white
+    sample, and the like. Blur ``blur_px``, noise 1.5 DN. The 8-bit frame and the holder's
+    corners."""
     w, h = 1280, 720
     ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
     disc, body, sample = levels
     t = math.radians(angle_deg)
     v = np.array([-math.sin(t), math.cos(t)])
-    held = rectangle((640.4, 380.1), 303.2, 193.0, angle_deg)
+    held = rectangle((640.4, 380.1), size_px[0], size_px[1], angle_deg)
     strip = np.array([held[0], held[1], held[1] - width_px * v, held[0] - width_px * v])
     if float(np.dot(strip[2] - held[2], v)) > 0:  # corner 0 -> 1 is the +v side: flip
         strip = np.array([held[2], held[3], held[3] + width_px * v, held[2] + width_px * v])
