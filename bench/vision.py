@@ -76,6 +76,7 @@ from drivers.sim.scenes import (  # noqa: E402
     Encoding,
     TopSceneSample,
     hard_shadow_scene,
+    hole_beside_scene,
     plate_scene,
     random_rim_scene,
     random_side_scene,
@@ -725,6 +726,21 @@ def wide_strips(quick: bool) -> list[Target]:
     return [_drawn("wide strip beside a nearly square holder", frames, SQUARE_PX)]
 
 
+def holes_beside(quick: bool) -> list[Target]:
+    """A side passing a dark hole in the floor beyond it (:func:`hole_beside_scene`, a
+    breadboard's tapped hole under the holder by 0.1-0.7 of its radius): the side steps
+    less there than elsewhere, and the area method judged its other columns against a
+    mean pulled down by the hole's (corpus seed 2124 #767, refused; docs/vision.md, "A
+    side past a floor hole"). Short and long sides, holes of 20 and 40 px radius; the
+    quick run at 2 angles, the full run at 9."""
+    angles = (30.0, 130.0) if quick else tuple(float(a) for a in range(0, 180, 20))
+    cases = [(ang, short, ov, r) for ang in angles for short in (True, False)
+             for ov in (0.1, 0.3, 0.5, 0.7) for r in (20.0, 40.0)]
+    frames = ((*hole_beside_scene(ang, short, ov, r, seed=k), None)
+              for k, (ang, short, ov, r) in enumerate(cases))
+    return [_drawn("holder beside a floor hole", frames, (196.0, 85.0))]
+
+
 FAINT_LEVELS = {"13 DN darker": 177.0, "13 DN lighter": 203.0}  # on our renderer's 190 DN disc
 
 
@@ -1096,6 +1112,7 @@ def main(argv: list[str] | None = None) -> int:
         targets += plates(args.quick)
         targets += samples_beside(args.quick)
         targets += wide_strips(args.quick)
+        targets += holes_beside(args.quick)
         targets += faint_holders(args.quick)
         targets += camera_frames(6 if args.quick else 60, args.seed + 400)
     if "side" in want:

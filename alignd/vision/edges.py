@@ -17,6 +17,9 @@ coordinate, with iterative rejection of outlying columns (specks, shadow boundar
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import cv2
@@ -29,8 +32,8 @@ from drivers.tone_curves import decode, is_linear
 __all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
            "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
            "coarse_edges_many", "despeckle", "edge_points", "edge_points_many", "edge_rows",
-           "fit_line", "intersect", "linearise", "residual_correlation", "segment_median",
-           "sensor_full_scale", "speck_mask", "xy_columns"]
+           "fit_line", "intersect", "judged_by_median", "linearise", "residual_correlation",
+           "segment_median", "sensor_full_scale", "speck_mask", "xy_columns"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -440,6 +443,40 @@ def _segment_moving_mean(v: np.ndarray, seg: np.ndarray, counts: np.ndarray,
     return (csum[st + hi + 1] - csum[st + lo]) / (hi - lo + 1)
 
 
+def _segment_moving_median(v: np.ndarray, seg: np.ndarray, counts: np.ndarray,
+                           starts: np.ndarray, k: int) -> np.ndarray:
+    """Median over +-k within each segment, the window cut at the segment's ends."""
+    if v.size == 0 or k <= 0:
+        return v
+    j = np.arange(v.size)[:, None] + np.arange(-k, k + 1)[None, :]
+    first = starts[seg][:, None]
+    inside = (j >= first) & (j < first + counts[seg][:, None])
+    return np.nanmedian(np.where(inside, v[np.clip(j, 0, v.size - 1)], np.nan), axis=1)
+
+
+# within judged_by_median: a side that loses more than this share of its good columns
+# against their neighbours' mean contrast is judged against their median instead (see
+# area_crossings_many); None outside it, the mean's verdict stands
+_LOST_SHARE: ContextVar[float | None] = ContextVar("lost_share", default=None)
+
+
+@contextmanager
+def judged_by_median(lost_share: float = 0.4) -> Iterator[None]:
+    """Within the block, an edge that loses more than ``lost_share`` of its columns for a
+    step unlike its neighbours' mean is judged against their median instead: a side
+    passing a dark hole in the floor beyond it steps less along the hole, and that run of
+    weaker columns pulls the mean off the stronger ones, which go too. Not the default:
+    a rectangle that is not the holder, a disc's rim and a cable across its sides, then
+    kept enough of them to pass (corpus seed 111100 #993); the top camera's full search
+    measures its boxes so only where every box failed (0.25 left one of 288 drawn holders
+    beside a floor hole refused, 0.4 none)."""
+    token = _LOST_SHARE.set(lost_share)
+    try:
+        yield
+    finally:
+        _LOST_SHARE.reset(token)
+
+
 def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarray, bool]],
                         *, half_width: int = 5, tails: int = 3, smooth: int = 3,
                         min_contrast: float = 10.0) -> list[EdgePoints]:
@@ -499,8 +536,22 @@ def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarr
     # (an edge without a good column has none to lose: 0 for its median, not NaN, which
     # the running sums would carry into the next edges)
     med = _nan_to_zero(segment_median(raw[good], seg[good], ne))
-    ref = _segment_moving_mean(np.where(good, raw, med[seg]), seg, counts, starts, 15)
-    good &= np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
+    filled = np.where(good, raw, med[seg])
+    ref = _segment_moving_mean(filled, seg, counts, starts, 15)
+    near = np.abs(raw - ref) <= 0.2 * np.abs(ref) + 3.0
+    # a run of weaker columns (a side passing a dark hole in the floor beyond it) pulls
+    # the mean of +-15 columns off the stronger ones as well, and a side lost most of its
+    # columns (a short side 8 of 50: the holder refused, corpus seed 2124 #767): within
+    # judged_by_median, where one loses over that share of its good columns so, its
+    # columns are judged against their neighbours' median instead
+    share = _LOST_SHARE.get()
+    lost = np.zeros(ne, bool) if share is None else (
+        np.bincount(seg, good & ~near, ne) > share * np.bincount(seg, good, ne))
+    if lost.any():
+        again = lost[seg]
+        ref_m = _segment_moving_median(filled, seg, counts, starts, 15)
+        near = np.where(again, np.abs(raw - ref_m) <= 0.2 * np.abs(ref_m) + 3.0, near)
+    good &= near
     denom = Sj - Ej
     denom = np.where(good & (np.abs(denom) > 1e-6), denom, 1.0)
     frac = (P - Ej) / denom

@@ -52,6 +52,7 @@ from alignd.vision.edges import (
     edge_points_many,
     fit_line,
     intersect,
+    judged_by_median,
     residual_correlation,
 )
 from alignd.vision.holder_bands import REACH as BAND_REACH
@@ -562,6 +563,17 @@ def _full_search(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
             continue
         if det.ok:
             return det
+    # last, the boxes refined once more with each side's columns judged against their
+    # neighbours' median (a side passing a floor hole lost its stronger columns with the
+    # hole's: edges.judged_by_median; only here, where every box failed)
+    with judged_by_median():
+        for box in tried:
+            try:
+                det = measure(box, max_rms_px)
+            except VisionError:
+                continue
+            if det.ok:
+                return det
     if last is None and not tried:
         raise VisionError("top image: no holder found (no rectangular target of either "
                           "polarity" + (f" near {expected_size_px[0]:.0f} x "

@@ -55,6 +55,7 @@ __all__ = [
     "Turn",
     "ellipse_conic",
     "hard_shadow_scene",
+    "hole_beside_scene",
     "random_rim_scene",
     "random_side_scene",
     "random_top_scene",
@@ -734,6 +735,33 @@ def cable_cut_scene(sag_px: float = 2.0, seed: int = 0, with_holder: bool = True
     edge = top + 130.0  # the cable's upper edge at the rectangle's ends
     cut = np.array([[785.0, top], [975.0, top], [975.0, edge], [785.0, edge]])
     return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held, cut
+
+
+def hole_beside_scene(angle_deg: float, short_side: bool, overlap: float, radius_px: float,
+                      seed: int = 0, levels: tuple[float, float, float] = (165.0, 15.0, 50.0)
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """A 196 x 85 px dark holder at ``angle_deg`` in a 1280 x 720 frame on a light floor with
+    a dark hole (a breadboard's tapped hole, ``radius_px``) beside the middle of a short
+    side (else a long one), under the holder by ``overlap`` of its radius: the side
+    passes the hole along part of its length, its step there a fraction of the rest (the
+    corpus' breadboard floors, seed 2124 #767). ``levels``: floor, holder, hole DN. Blur
+    1 px, noise 2 DN. The 8-bit frame and the holder's corners."""
+    w, h = 1280, 720
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    floor, body, hole = levels
+    held = rectangle((640.3, 360.7), 196.0, 85.0, angle_deg)
+    a, b = (held[1], held[2]) if short_side else (held[0], held[1])
+    mid = (a + b) / 2
+    out = (mid - held.mean(axis=0)) / float(np.linalg.norm(mid - held.mean(axis=0)))
+    centre = mid + out * radius_px * (1.0 - overlap)
+    box = (0, 0, w, h)
+    in_hole = coverage(Conic(ellipse_conic((float(centre[0]), float(centre[1])), radius_px,
+                                           radius_px, 0.0)), ras, box)
+    img = floor + (hole - floor) * in_hole
+    img = img + (body - img) * coverage(Polygon(held), ras, box)
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
+    noise = np.random.default_rng(seed).normal(0, 2.0, img.shape)
+    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
 
 
 def strip_under_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
