@@ -298,6 +298,14 @@ def _finish(img: np.ndarray, rng: np.random.Generator, *, blur: float, read_nois
     return out
 
 
+def _drawn_8bit(img: np.ndarray, blur_px: float, noise_dn: float, seed: int) -> np.ndarray:
+    """A drawn scene's exact levels as an 8-bit frame: blurred by a Gaussian of
+    ``blur_px``, with read noise of ``noise_dn`` (rms) from ``seed``, rounded and clipped."""
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), blur_px)
+    noise = np.random.default_rng(seed).normal(0, noise_dn, img.shape)
+    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8)
+
+
 def _encoding(rng: np.random.Generator, category: str) -> Encoding:
     if category == "jpeg" or (category == "everything" and rng.random() < 0.4):
         return Encoding(8, False, int(rng.integers(60, 96)))
@@ -638,9 +646,7 @@ def hard_shadow_scene(offset_px: float, angle_deg: float, seed: int = 0,
     img = np.full((h, w), disc)
     img += (shade - img) * coverage(Polygon(held + np.array([offset_px, -0.73])), ras, box)
     img += (dark - img) * coverage(Polygon(held), ras, box)
-    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.49)
-    noise = np.random.default_rng(seed).normal(0, 0.8, img.shape)
-    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
+    return _drawn_8bit(img, 0.49, 0.8, seed), held
 
 
 def plate_scene(insets_px: tuple[float, float, float, float], angle_deg: float,
@@ -670,9 +676,7 @@ def plate_scene(insets_px: tuple[float, float, float, float], angle_deg: float,
     img = np.full((h, w), float(floor))
     img += (body - img) * coverage(Polygon(held), ras, box)
     img += (plate - img) * coverage(Polygon(inner), ras, box)
-    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8)
-    noise = np.random.default_rng(seed).normal(0, 1.0, img.shape)
-    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), ras.distort(held)
+    return _drawn_8bit(img, 0.8, 1.0, seed), ras.distort(held)
 
 
 def sample_beside_scene(width_px: float, angle_deg: float,
@@ -699,9 +703,7 @@ def sample_beside_scene(width_px: float, angle_deg: float,
     box = (0, 0, w, h)
     ch, cs = coverage(Polygon(held), ras, box), coverage(Polygon(strip), ras, box)
     img = disc * np.clip(1.0 - ch - cs, 0.0, 1.0) + body * ch + sample * cs
-    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), blur_px)
-    noise = np.random.default_rng(seed).normal(0, 1.5, img.shape)
-    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
+    return _drawn_8bit(img, blur_px, 1.5, seed), held
 
 
 def cable_cut_scene(sag_px: float = 2.0, seed: int = 0, with_holder: bool = True
@@ -730,11 +732,10 @@ def cable_cut_scene(sag_px: float = 2.0, seed: int = 0, with_holder: bool = True
         cv2.polylines(m, [pts * s], False, 255, thickness=9 * s, lineType=cv2.LINE_AA,
                       shift=4)
     img += (30.0 - img) * _aa_mask((h, w), draw)
-    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8)
-    noise = np.random.default_rng(seed).normal(0, 1.0, img.shape)
+    frame = _drawn_8bit(img, 0.8, 1.0, seed)
     edge = top + 130.0  # the cable's upper edge at the rectangle's ends
     cut = np.array([[785.0, top], [975.0, top], [975.0, edge], [785.0, edge]])
-    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held, cut
+    return frame, held, cut
 
 
 def hole_beside_scene(angle_deg: float, short_side: bool, overlap: float, radius_px: float,
@@ -759,9 +760,7 @@ def hole_beside_scene(angle_deg: float, short_side: bool, overlap: float, radius
                                            radius_px, 0.0)), ras, box)
     img = floor + (hole - floor) * in_hole
     img = img + (body - img) * coverage(Polygon(held), ras, box)
-    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
-    noise = np.random.default_rng(seed).normal(0, 2.0, img.shape)
-    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
+    return _drawn_8bit(img, 1.0, 2.0, seed), held
 
 
 def strip_under_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
