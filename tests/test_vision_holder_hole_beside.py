@@ -60,3 +60,21 @@ def test_a_run_of_weaker_columns_keeps_the_stronger_ones_of_the_side() -> None:
     x = pts.xy[:, 0]
     assert np.allclose(x[away & strong], 19.5, atol=0.1)
     assert np.allclose(x[away & ~strong], 19.5, atol=0.25)  # a step of 35 DN, not 150
+
+
+def test_watching_notes_a_side_that_lost_its_columns_and_changes_nothing() -> None:
+    # column_judging without by_median: the full search's first tries, which note whether
+    # its last try could measure anything else
+    rng = np.random.default_rng(5)
+    clean = np.full((60, 40), 165.0)
+    clean[:, :20] = 15.0
+    holed = clean.copy()
+    holed[20:40, 20:] = 50.0
+    for img, lost in ((clean, False), (holed, True)):
+        img = (img + rng.normal(0, 1.0, img.shape)).astype(np.float32)
+        args = (img, np.arange(60), np.full(60, 19.5), True)
+        plain = edges.area_crossings(*args, min_contrast=15.0)
+        with edges.column_judging(edges.ColumnJudging()) as watch:
+            watched = edges.area_crossings(*args, min_contrast=15.0)
+        assert watch.lost_seen is lost
+        assert np.array_equal(watched.xy, plain.xy)

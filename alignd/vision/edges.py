@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
 
@@ -29,11 +29,12 @@ from alignd.errors import VisionError
 from drivers.config import ToneCurve
 from drivers.tone_curves import decode, is_linear
 
-__all__ = ["EdgePoints", "Line", "adaptive_slope", "adaptive_slopes", "area_crossings",
-           "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
-           "coarse_edges_many", "despeckle", "edge_points", "edge_points_many", "edge_rows",
-           "fit_line", "intersect", "judged_by_median", "linearise", "residual_correlation",
-           "segment_median", "sensor_full_scale", "speck_mask", "xy_columns"]
+__all__ = ["ColumnJudging", "EdgePoints", "Line", "adaptive_slope", "adaptive_slopes",
+           "area_crossings", "area_crossings_many", "as_gray", "check_usable", "coarse_edge",
+           "coarse_edges_many", "column_judging", "despeckle", "edge_points",
+           "edge_points_many", "edge_rows", "fit_line", "intersect", "judged_by_median",
+           "linearise", "residual_correlation", "segment_median", "sensor_full_scale",
+           "speck_mask", "xy_columns"]
 
 
 def as_gray(image: np.ndarray, what: str = "image") -> np.ndarray:
@@ -454,27 +455,42 @@ def _segment_moving_median(v: np.ndarray, seg: np.ndarray, counts: np.ndarray,
     return np.nanmedian(np.where(inside, v[np.clip(j, 0, v.size - 1)], np.nan), axis=1)
 
 
-# within judged_by_median: a side that loses more than this share of its good columns
-# against their neighbours' mean contrast is judged against their median instead (see
-# area_crossings_many); None outside it, the mean's verdict stands
-_LOST_SHARE: ContextVar[float | None] = ContextVar("lost_share", default=None)
+@dataclass
+class ColumnJudging:
+    """How :func:`area_crossings_many` judges an edge's columns within
+    :func:`column_judging`: an edge that loses more than ``lost_share`` of its good columns
+    for a step unlike their neighbours' mean is noted (``lost_seen``) and, ``by_median``,
+    judged against their median instead. A side passing a dark hole in the floor beyond
+    it steps less along the hole, and that run of weaker columns pulls the mean off the
+    stronger ones, which go too. Not the default: a rectangle that is not the holder, a
+    disc's rim and a cable across its sides, then kept enough of them to pass (corpus
+    seed 111100 #993); the top camera's full search measures its boxes so only where
+    every box failed and a side of one lost so many (0.25 left one of 288 drawn holders
+    beside a floor hole refused, 0.4 none)."""
+
+    lost_share: float = 0.4
+    by_median: bool = False
+    lost_seen: bool = False
+
+
+_JUDGING: ContextVar[ColumnJudging | None] = ContextVar("column_judging", default=None)
 
 
 @contextmanager
-def judged_by_median(lost_share: float = 0.4) -> Iterator[None]:
-    """Within the block, an edge that loses more than ``lost_share`` of its columns for a
-    step unlike its neighbours' mean is judged against their median instead: a side
-    passing a dark hole in the floor beyond it steps less along the hole, and that run of
-    weaker columns pulls the mean off the stronger ones, which go too. Not the default:
-    a rectangle that is not the holder, a disc's rim and a cable across its sides, then
-    kept enough of them to pass (corpus seed 111100 #993); the top camera's full search
-    measures its boxes so only where every box failed (0.25 left one of 288 drawn holders
-    beside a floor hole refused, 0.4 none)."""
-    token = _LOST_SHARE.set(lost_share)
+def column_judging(judging: ColumnJudging) -> Iterator[ColumnJudging]:
+    """Within the block, edges' columns are judged as ``judging`` says (outside any, by
+    their neighbours' mean, and nothing is noted)."""
+    token = _JUDGING.set(judging)
     try:
-        yield
+        yield judging
     finally:
-        _LOST_SHARE.reset(token)
+        _JUDGING.reset(token)
+
+
+def judged_by_median(lost_share: float = 0.4) -> AbstractContextManager[ColumnJudging]:
+    """:func:`column_judging` with an edge that loses more than ``lost_share`` of its
+    columns to their neighbours' mean judged against their median instead."""
+    return column_judging(ColumnJudging(lost_share, by_median=True))
 
 
 def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarray, bool]],
@@ -542,12 +558,14 @@ def area_crossings_many(gray: np.ndarray, edges: list[tuple[np.ndarray, np.ndarr
     # a run of weaker columns (a side passing a dark hole in the floor beyond it) pulls
     # the mean of +-15 columns off the stronger ones as well, and a side lost most of its
     # columns (a short side 8 of 50: the holder refused, corpus seed 2124 #767): within
-    # judged_by_median, where one loses over that share of its good columns so, its
-    # columns are judged against their neighbours' median instead
-    share = _LOST_SHARE.get()
-    lost = np.zeros(ne, bool) if share is None else (
-        np.bincount(seg, good & ~near, ne) > share * np.bincount(seg, good, ne))
-    if lost.any():
+    # column_judging, where one loses over its share of its good columns so, that is
+    # noted and (by_median) its columns are judged against their neighbours' median
+    judging = _JUDGING.get()
+    lost = np.zeros(ne, bool) if judging is None else (
+        np.bincount(seg, good & ~near, ne) > judging.lost_share * np.bincount(seg, good, ne))
+    if judging is not None and lost.any():
+        judging.lost_seen = True
+    if judging is not None and judging.by_median and lost.any():
         again = lost[seg]
         ref_m = _segment_moving_median(filled, seg, counts, starts, 15)
         near = np.where(again, np.abs(raw - ref_m) <= 0.2 * np.abs(ref_m) + 3.0, near)

@@ -42,17 +42,18 @@ from scipy.special import ndtri
 
 from alignd.errors import VisionError
 from alignd.vision.edges import (
+    ColumnJudging,
     EdgePoints,
     Line,
     as_gray,
     check_usable,
     coarse_edges_many,
+    column_judging,
     despeckle,
     edge_points,
     edge_points_many,
     fit_line,
     intersect,
-    judged_by_median,
     residual_correlation,
 )
 from alignd.vision.holder_bands import REACH as BAND_REACH
@@ -508,12 +509,18 @@ def _full_search(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
     votes = None if expected_size_px is None else FrameVotes(gray, expected_size_px,
                                                              min_contrast, size_tolerance)
 
-    def measure(box: np.ndarray, rms_px: float) -> HolderDetection:
+    # whether a side of a box measured lost most of its columns to their neighbours' mean
+    # contrast: only then can the last try below (by their median) measure anything else
+    watch = ColumnJudging()
+
+    def measure(box: np.ndarray, rms_px: float, judging: ColumnJudging = watch
+                ) -> HolderDetection:
         """``box`` refined and checked (VisionError where its sides cannot be located)."""
-        det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
-                      min_contrast, rms_px, passes, lens, size_tolerance, profile)
-        return _looked_again(gray, det, polarity, expected_size_px, hint_arr, min_contrast,
-                             rms_px, passes, lens, size_tolerance, profile)
+        with column_judging(judging):
+            det = _refine(gray, order_corners(box), polarity, expected_size_px, hint_arr,
+                          min_contrast, rms_px, passes, lens, size_tolerance, profile)
+            return _looked_again(gray, det, polarity, expected_size_px, hint_arr,
+                                 min_contrast, rms_px, passes, lens, size_tolerance, profile)
 
     def later() -> Iterator[tuple[np.ndarray, float]]:
         """Once every box has failed: the rough ones allowing more scatter, then the boxes
@@ -565,11 +572,13 @@ def _full_search(gray: np.ndarray, expected_size_px: tuple[float, float] | None,
             return det
     # last, the boxes refined once more with each side's columns judged against their
     # neighbours' median (a side passing a floor hole lost its stronger columns with the
-    # hole's: edges.judged_by_median; only here, where every box failed)
-    with judged_by_median():
+    # hole's: edges.ColumnJudging; only here, where every box failed, and only where a
+    # side of one lost so many: elsewhere the median judges as the mean did)
+    if watch.lost_seen:
+        by_median = ColumnJudging(watch.lost_share, by_median=True)
         for box in tried:
             try:
-                det = measure(box, max_rms_px)
+                det = measure(box, max_rms_px, by_median)
             except VisionError:
                 continue
             if det.ok:
