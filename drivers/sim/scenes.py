@@ -59,6 +59,7 @@ __all__ = [
     "random_rim_scene",
     "random_side_scene",
     "random_top_scene",
+    "soft_band_scene",
     "strip_under_scene",
 ]
 
@@ -647,6 +648,30 @@ def hard_shadow_scene(offset_px: float, angle_deg: float, seed: int = 0,
     img += (shade - img) * coverage(Polygon(held + np.array([offset_px, -0.73])), ras, box)
     img += (dark - img) * coverage(Polygon(held), ras, box)
     return _drawn_8bit(img, 0.49, 0.8, seed), held
+
+
+def soft_band_scene(width_px: float, shadow_blur_px: float, angle_deg: float,
+                    seed: int = 0, blur_px: float = 2.2,
+                    levels: tuple[float, float] = (200.0, 60.0)
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """A dark 260 x 160 px holder at ``angle_deg`` in a 1280 x 720 frame (``levels``: disc
+    and holder DN) with its cast shadow, 35 % deep, shifted ``width_px`` along its long
+    side and blurred ``shadow_blur_px`` (a Gaussian): a soft band that wide beyond one
+    short side, whose outer step is softer than the holder's edge (the random corpus'
+    cast shadows, one side's worth). The frame blurred ``blur_px`` (a defocused camera:
+    both steps within a few blurs of each other), noise 1 DN. The 8-bit frame and the
+    holder's corners (corner 1 to 2 the side beside the band)."""
+    w, h = 1280, 720
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    disc, dark = levels
+    held = rectangle((640.3, 360.7), 260.0, 160.0, angle_deg)
+    t = math.radians(angle_deg)
+    u = np.array([math.cos(t), math.sin(t)])
+    box = (0, 0, w, h)
+    shade = coverage(Polygon(held + width_px * u), ras, box).astype(np.float32)
+    img = disc * (1.0 - 0.35 * cv2.GaussianBlur(shade, (0, 0), shadow_blur_px))
+    img += (dark - img) * coverage(Polygon(held), ras, box)
+    return _drawn_8bit(img, blur_px, 1.0, seed), held
 
 
 def plate_scene(insets_px: tuple[float, float, float, float], angle_deg: float,
