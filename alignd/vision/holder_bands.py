@@ -47,6 +47,7 @@ __all__ = ["REACH", "Band", "SideProfiles", "band_levels", "fit_steps", "plate_r
 
 REACH = 8.0  # px either side of the found side: the profiles :func:`side_bands` reads
 _BIN = 0.2  # px: the pixels are binned by their distance to the side
+_MAX_BLUR = 4.0  # px: the steps' blur is fitted within 0.2 and this (:func:`fit_steps`)
 _ALONG = (0.15, 0.85)  # the part of the side read (corners and their shadows left out)
 # the decision (docs/vision.md, "A side between two steps"): two steps of one sign fit a
 # side _MIN_GAIN times better than one, their sum within _WHOLE of the side's whole step
@@ -238,9 +239,9 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
     eye = np.eye(P.shape[1])[None]
     # the bounds: the blurs within 0.2-4 px, the steps within reach
     lo, hi = np.full(P.shape[1], -np.inf), np.full(P.shape[1], np.inf)
-    lo[2], hi[2] = 0.2, 4.0
+    lo[2], hi[2] = 0.2, _MAX_BLUR
     if own_blur:
-        lo[-1], hi[-1] = 0.2, 4.0
+        lo[-1], hi[-1] = 0.2, _MAX_BLUR
     lo[4::2], hi[4::2] = -reach + 0.5, reach - 0.5
     live = np.ones(len(P), bool)  # rows still improving
     for _ in range(iterations):
@@ -299,21 +300,27 @@ def _resolvable(x: np.ndarray, r: np.ndarray, cnt: np.ndarray, inner: float, out
     return miss >= _MIN_MISS * abs(step)
 
 
-# the face beyond a band's inner step, read _DEEP px deep from _DEEP_FROM px inside it, must
-# vary (rms about a line) by less than _FLAT of the band's smaller step: a brushed face's
-# lines parallel to a side (15 DN rms, 4 px apart) made a second step 4 px inside a dark
-# holder's side, and the side was moved onto it (3.7-3.9 px); such a face varies by 0.29
-# of that step, the face behind the synthetic hard shadows by 0.001-0.003
-_DEEP, _DEEP_FROM, _FLAT = 12.0, 1.5, 0.05
-_DEEP_BINS = np.arange(-REACH - _DEEP - _DEEP_FROM, 0.0, 0.5)
+# the face beyond a band's inner step, read _DEEP px deep from _DEEP_FROM px plus
+# _DEEP_BLURS of the steps' blur inside it, must vary (rms about a line) by less than _FLAT
+# of the band's smaller step: a brushed face's lines parallel to a side (15 DN rms, 4 px
+# apart) made a second step 4 px inside a dark holder's side, and the side was moved onto
+# it (3.7-3.9 px); such a face varies by 0.29 of that step, the face behind the synthetic
+# hard shadows by 0.001-0.003. The blur's share keeps the inner step's own tail out: read
+# from 1.5 px in, a soft band's face (blur 2.2 px: a third of the step still to come
+# there) read as rough, and the side stayed between the steps, 1.0-1.3 px off
+_DEEP, _DEEP_FROM, _DEEP_BLURS, _FLAT = 12.0, 1.5, 2.5, 0.05
+_DEEP_BINS = np.arange(-REACH - _DEEP - _DEEP_FROM - _DEEP_BLURS * _MAX_BLUR, 0.0, 0.5)
 
 
-def _rough_face(deep: SideProfiles, k: int, inner: float, step: float) -> bool:
-    """Whether the face inside side ``k``'s inner step varies as much as a band: texture
-    (:data:`_DEEP`, :data:`_FLAT`), whose inner step is one more of its lines. ``deep``:
-    the sides' profiles read over :data:`_DEEP_BINS` (:func:`side_profiles`)."""
+def _rough_face(deep: SideProfiles, k: int, inner: float, step: float, blur: float
+                ) -> bool:
+    """Whether the face inside side ``k``'s inner step (blurred ``blur`` px) varies as much
+    as a band: texture (:data:`_DEEP`, :data:`_FLAT`), whose inner step is one more of its
+    lines. ``deep``: the sides' profiles read over :data:`_DEEP_BINS`
+    (:func:`side_profiles`)."""
     x, m, cnt = deep.x, deep.m, deep.cnt
-    use = (cnt[k] > 0) & (x[k] >= inner - _DEEP_FROM - _DEEP) & (x[k] <= inner - _DEEP_FROM)
+    start = inner - _DEEP_FROM - _DEEP_BLURS * blur
+    use = (cnt[k] > 0) & (x[k] >= start - _DEEP) & (x[k] <= start)
     if use.sum() < 8:
         return False
     wts = cnt[k, use]
@@ -351,6 +358,34 @@ def plate_rim(prof: SideProfiles, k: int, levels: tuple[float, float]) -> bool:
     near = float(np.average(prof.m[o, use], weights=prof.cnt[o, use]))
     band, beyond = levels
     return abs(near - band) <= _RIM_NEAR * abs(beyond - band)
+
+
+def _softer_outer(p: np.ndarray, cost: float, x: np.ndarray, m: np.ndarray,
+                  cnt: np.ndarray, foot: np.ndarray, within: float
+                  ) -> tuple[float, float] | None:
+    """A band's inner step placed again with the outer step's own blur, from the two
+    steps of one blur ``p`` (residual sum ``cost``) on one side's profile (``x``, ``m``,
+    ``cnt``, ``foot``; ``within``: the pixels' scatter within the bins): the inner step
+    and its standard error, or None where the outer step is not the softer or the fit is
+    no better. A cast shadow's outer edge is its penumbra, the camera's blur and the
+    shadow's own, softer than the holder's edge; one blur for both, a soft band's inner
+    step (blur 2.2 px, the shadow's 2 px) was read 0.3-0.5 px outside the holder's
+    edge."""
+    a, g, s, c1, d1, c2, d2 = (float(v) for v in p)
+    if d1 > d2:
+        c1, d1, c2, d2 = c2, d2, c1, d1
+    q, cq, A = fit_steps(np.array([[a, g, s, c1, d1, c2, d2, s]]), x[None], m[None],
+                         cnt[None], foot[None], 2, own_blur=True)
+    _a, _g, s_in, c_in, d_in, c_out, d_out, s_out = (float(v) for v in q[0])
+    if not (float(cq[0]) < cost and c_in * c_out > 0 and s_out >= s_in
+            and d_out - d_in >= _MIN_SEP):
+        return None
+    var_px = (float(cq[0]) + within) / max(float(cnt.sum()) - 8.0, 1.0)
+    try:
+        var = float(np.linalg.inv(A[0])[4, 4]) * var_px
+    except np.linalg.LinAlgError:
+        return None
+    return d_in, math.sqrt(max(var, 0.0))
 
 
 _SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, ...
@@ -440,19 +475,23 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
                 continue
             if deep is None:  # read once, for the first side that gets this far
                 deep = side_profiles(gray, ci, lens, _DEEP_BINS)
-            if _rough_face(deep, int(k), inner, min(abs(c1), abs(c2))):
+            if _rough_face(deep, int(k), inner, min(abs(c1), abs(c2)), float(s2)):
                 continue
             # inner's standard error: the normal matrix scaled by the pixels' scatter
             # about the fit (within the bins and the bins' about the model)
             j = 4 if d1 <= d2 else 6
             var_px = (float(cost2[b]) + within[k]) / max(float(cnt[k].sum()) - 7.0, 1.0)
             try:
-                var = float(np.linalg.inv(A2[b])[j, j]) * var_px
+                sigma = math.sqrt(max(float(np.linalg.inv(A2[b])[j, j]) * var_px, 0.0))
             except np.linalg.LinAlgError:
-                var = math.inf
+                sigma = math.inf
+            levels = band_levels(_a, _g, inner, outer, c1 if d1 <= d2 else c2)
+            softer = _softer_outer(P2[b], float(cost2[b]), x[k], m[k], cnt[k], foot[k],
+                                   float(within[k]))
+            if softer is not None:
+                inner, sigma = softer
             bands.append(Band(int(k), float(inner), float(outer), float(share), gain,
-                              math.sqrt(max(var, 0.0)),
-                              band_levels(_a, _g, inner, outer, c1 if d1 <= d2 else c2)))
+                              sigma, levels))
         return bands, twice
 
     bands, twice = examine(np.flatnonzero(usable))
