@@ -53,6 +53,8 @@ __all__ = [
     "SideSceneSample",
     "TopSceneSample",
     "Turn",
+    "disc_defocus_scene",
+    "disc_kernel",
     "ellipse_conic",
     "hard_shadow_scene",
     "hole_beside_scene",
@@ -672,6 +674,39 @@ def soft_band_scene(width_px: float, shadow_blur_px: float, angle_deg: float,
     img = disc * (1.0 - 0.35 * cv2.GaussianBlur(shade, (0, 0), shadow_blur_px))
     img += (dark - img) * coverage(Polygon(held), ras, box)
     return _drawn_8bit(img, blur_px, 1.0, seed), held
+
+
+def disc_kernel(radius_px: float, sub: int = 16) -> np.ndarray:
+    """A lens' defocus: a uniform disc of ``radius_px``, each pixel's weight the share of
+    ``sub`` x ``sub`` points within it that fall in the disc (normalised to 1)."""
+    n = math.ceil(radius_px)
+    off = (np.arange(sub) + 0.5) / sub - 0.5
+    k = np.zeros((2 * n + 1, 2 * n + 1))
+    for i in range(-n, n + 1):
+        for j in range(-n, n + 1):
+            yy, xx = np.meshgrid(i + off, j + off, indexing="ij")
+            k[i + n, j + n] = np.count_nonzero(xx * xx + yy * yy <= radius_px * radius_px)
+    return (k / k.sum()).astype(np.float32)
+
+
+def disc_defocus_scene(radius_px: float, angle_deg: float, seed: int = 0,
+                       levels: tuple[float, float] = (200.0, 60.0), gauss_px: float = 0.0
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """A 260 x 160 px holder at ``angle_deg`` in a 1280 x 720 frame (``levels``: disc and
+    holder DN) seen through a lens out of focus: blurred by a disc of ``radius_px``
+    (:func:`disc_kernel`), not the Gaussian the random corpus uses, then by a Gaussian of
+    ``gauss_px`` (0: none), noise 1 DN. The 8-bit frame and the holder's corners."""
+    w, h = 1280, 720
+    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    disc, body = levels
+    held = rectangle((640.3, 360.7), 260.0, 160.0, angle_deg)
+    sharp = np.full((h, w), disc, np.float32)
+    sharp += (body - sharp) * coverage(Polygon(held), ras, (0, 0, w, h)).astype(np.float32)
+    img = cv2.filter2D(sharp, -1, disc_kernel(radius_px))
+    if gauss_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), gauss_px)
+    noise = np.random.default_rng(seed).normal(0, 1.0, img.shape)
+    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
 
 
 def plate_scene(insets_px: tuple[float, float, float, float], angle_deg: float,
