@@ -49,6 +49,7 @@ __all__ = [
     "RIM_CATEGORIES",
     "SIDE_CATEGORIES",
     "TOP_CATEGORIES",
+    "Defocus",
     "RimSceneSample",
     "SideSceneSample",
     "TopSceneSample",
@@ -65,6 +66,7 @@ __all__ = [
     "strip_under_scene",
 ]
 
+Defocus = Literal["gaussian", "disc"]  # a blur's shape (:func:`random_top_scene`)
 TopCategory = Literal["plain", "distractors", "shadows", "optics", "jpeg", "12-bit", "everything"]
 TOP_CATEGORIES: tuple[TopCategory, ...] = ("plain", "distractors", "shadows", "optics", "jpeg",
                                            "12-bit", "everything")
@@ -421,8 +423,12 @@ class Turn:
 
 def random_top_scene(rng: np.random.Generator, category: str | None = None,
                      size_px: tuple[int, int] = (1280, 720), *,
-                     turn: Turn | None = None) -> TopSceneSample:
+                     turn: Turn | None = None, defocus: Defocus = "gaussian"
+                     ) -> TopSceneSample:
     """One randomised top-camera frame with its exact corners (see the module docstring).
+
+    ``defocus``: the blur's shape, a Gaussian of the drawn blur or a lens out of focus, a
+    disc of twice that radius (:func:`disc_kernel`; the same draws, so the same scenes).
 
     ``turn``: the same scene (the same draws from ``rng``) with the holder turned (a sweep's
     frame). Where the turn changes which of the scene's draws are kept (a cable or a
@@ -623,9 +629,11 @@ def random_top_scene(rng: np.random.Generator, category: str | None = None,
     blur = float(rng.uniform(0.8, 2.0)) if optics else float(rng.uniform(0.3, 1.0))
     read_noise = float(rng.uniform(0.5, 2.5))  # (drawn in this order: the corpus stays)
     electrons_per_dn = float(rng.uniform(20, 80))
+    if defocus == "disc":  # a lens out of focus: a disc of twice the blur's radius
+        img = cv2.filter2D(img, -1, disc_kernel(2.0 * blur), borderType=cv2.BORDER_REFLECT)
     out = _finish(img, rng if turn is None else np.random.default_rng(turn.noise_seed),
-                  blur=blur, read_noise=read_noise, electrons_per_dn=electrons_per_dn,
-                  enc=enc)
+                  blur=blur if defocus == "gaussian" else 0.0, read_noise=read_noise,
+                  electrons_per_dn=electrons_per_dn, enc=enc)
     # the sensor's noise model (8-bit DN), as bench/vision_bounds.py's bound needs it
     params.update(blur_px=blur, read_noise_dn=read_noise, electrons_per_dn=electrons_per_dn)
     return TopSceneSample(out, cat, corners, (max(L_mm, S_mm), min(L_mm, S_mm)), px_um, pol,
@@ -690,12 +698,13 @@ def disc_kernel(radius_px: float, sub: int = 16) -> np.ndarray:
 
 
 def disc_defocus_scene(radius_px: float, angle_deg: float, seed: int = 0,
-                       levels: tuple[float, float] = (200.0, 60.0), gauss_px: float = 0.0
-                       ) -> tuple[np.ndarray, np.ndarray]:
+                       levels: tuple[float, float] = (200.0, 60.0), gauss_px: float = 0.0,
+                       jpeg_quality: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A 260 x 160 px holder at ``angle_deg`` in a 1280 x 720 frame (``levels``: disc and
     holder DN) seen through a lens out of focus: blurred by a disc of ``radius_px``
     (:func:`disc_kernel`), not the Gaussian the random corpus uses, then by a Gaussian of
-    ``gauss_px`` (0: none), noise 1 DN. The 8-bit frame and the holder's corners."""
+    ``gauss_px`` (0: none), noise 1 DN, and a JPEG round trip at ``jpeg_quality`` (None:
+    none). The 8-bit frame and the holder's corners."""
     w, h = 1280, 720
     ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
     disc, body = levels
@@ -706,7 +715,8 @@ def disc_defocus_scene(radius_px: float, angle_deg: float, seed: int = 0,
     if gauss_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), gauss_px)
     noise = np.random.default_rng(seed).normal(0, 1.0, img.shape)
-    return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8), held
+    out = np.clip(np.rint(img + noise), 0, 255).astype(np.uint8)
+    return (out if jpeg_quality is None else mjpeg(out, jpeg_quality)), held
 
 
 def plate_scene(insets_px: tuple[float, float, float, float], angle_deg: float,
