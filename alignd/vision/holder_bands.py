@@ -37,13 +37,15 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from alignd.vision.holder_steps import side_frame
 from alignd.vision.lens import Lens
-from alignd.vision.profile_fit import step_response
+from alignd.vision.profile_fit import disc_edge, step_response
 
-__all__ = ["REACH", "Band", "SideProfiles", "band_levels", "fit_steps", "plate_rim",
-           "profile_bins", "read_sides", "side_bands", "side_profiles", "steps_model"]
+__all__ = ["REACH", "Band", "SideProfiles", "band_levels", "fit_steps", "one_disc_edge",
+           "plate_rim", "profile_bins", "read_sides", "side_bands", "side_profiles",
+           "steps_model"]
 
 REACH = 8.0  # px either side of the found side: the profiles :func:`side_bands` reads
 _BIN = 0.2  # px: the pixels are binned by their distance to the side
@@ -300,6 +302,59 @@ def _resolvable(x: np.ndarray, r: np.ndarray, cnt: np.ndarray, inner: float, out
     return miss >= _MIN_MISS * abs(step)
 
 
+# one disc-defocused edge fitting within _DISC_SLACK times two Gaussian steps' residual sum
+# is a lens out of focus, not two steps (:func:`one_disc_edge`: a disc's edge 0.36-0.37,
+# 2.5 through JPEG q 60; the drawn plates', shadows' and strips' steps 4.4-14000); the fit
+# runs where one of _DISC_SCREEN_RADII (of 1.25 times the steps' distance) at their place
+# fits within _DISC_SCREEN times
+_DISC_SLACK = 3.0
+_DISC_SCREEN, _DISC_SCREEN_RADII = 10.0, (0.8, 1.0, 1.25)
+
+
+def _disc_cost(q: np.ndarray, x: np.ndarray, m: np.ndarray, sw: np.ndarray,
+               foot: np.ndarray) -> np.ndarray:
+    """The weighted residuals of one disc-defocused step at (place, radius) ``q``, its
+    level, slope and height by linear least squares."""
+    X = np.stack([np.ones_like(x), x, disc_edge(x - q[0], q[1], foot)])
+    beta = np.linalg.lstsq((X * sw).T, m * sw, rcond=None)[0]
+    return (m - beta @ X) * sw
+
+
+def one_disc_edge(x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
+                  steps: tuple[float, float, float, float], cost2: float) -> bool:
+    """Whether one step defocused by a disc fits a side's profile (``x``, ``m``, weights
+    ``w``, footprint ``foot``) nearly as well as two Gaussian steps (``steps``: heights and
+    places c1, d1, c2, d2; residual sum ``cost2``): within _DISC_SLACK times. A lens out
+    of focus blurs by a disc, not a Gaussian: its edge ends abruptly a radius out on
+    either side, and two Gaussian steps a radius apart, each half the edge's, fit it far
+    better than one (a 4 px radius: 7-8 times): the neighbour
+    look took each side of such a holder for a step with a second one 3.2 px from it and
+    measured it again 1.5 px off, and the band check (:func:`side_bands`) took a side for
+    one between two steps and moved it in 1.1-1.5 px. A plate's edge or a shadow's beside
+    the side is a level between two steps, which no one step fits."""
+    c1, d1, c2, d2 = (float(v) for v in steps)
+    if c1 * c2 <= 0:
+        return False  # two steps opposite ways: no one step of any blur makes them
+    sw = np.sqrt(w)
+    # (the two steps' heights' mean place, and a radius 1.25 times their distance: a
+    # disc's edge fits two Gaussian steps 0.8 of its radius apart)
+    at, radius = (c1 * d1 + c2 * d2) / (c1 + c2), max(1.25 * abs(d2 - d1), 1.0)
+    # a few radii there first: a plate's or a shadow's step misfits every one by far (the
+    # fit below costs 1-3 ms a side)
+    near = min(float(np.sum(_disc_cost(np.array([at, radius * f]), x, m, sw, foot) ** 2))
+               for f in _DISC_SCREEN_RADII)
+    if near > _DISC_SCREEN * cost2:
+        return False
+    try:
+        res = least_squares(_disc_cost, np.array([at, radius]), args=(x, m, sw, foot),
+                            method="trf", bounds=([-REACH, 0.5], [REACH, REACH]),
+                            max_nfev=60)
+    except (ValueError, np.linalg.LinAlgError):
+        return False
+    cost = float(np.sum(res.fun ** 2))
+    return cost <= _DISC_SLACK * cost2
+
+
 # the face beyond a band's inner step, read _DEEP px deep from _DEEP_FROM px plus
 # _DEEP_BLURS of the steps' blur inside it, must vary (rms about a line) by less than _FLAT
 # of the band's smaller step: a brushed face's lines parallel to a side (15 DN rms, 4 px
@@ -467,6 +522,9 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
                     and _resolvable(x[k], m[k] - steps_model(P1[k:k + 1], x[k:k + 1],
                                                              foot[k:k + 1], 1)[0][0],
                                     cnt[k], inner, outer, foot[k], float(c0[k]))):
+                continue
+            # (or one edge through a lens out of focus)
+            if one_disc_edge(x[k], m[k], cnt[k], foot[k], (c1, d1, c2, d2), float(cost2[b])):
                 continue
             twice.add(int(k))
             # the found side between the steps, or on the outer one with the inner one near

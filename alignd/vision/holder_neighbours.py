@@ -32,19 +32,19 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from alignd.vision.holder_bands import (
     SideProfiles,
     band_levels,
     fit_steps,
+    one_disc_edge,
     plate_rim,
     read_sides,
     steps_model,
 )
 from alignd.vision.holder_steps import side_frame
 from alignd.vision.lens import Lens
-from alignd.vision.profile_fit import disc_edge, step_response
+from alignd.vision.profile_fit import step_response
 
 __all__ = ["REACH", "Neighbour", "neighbour_steps", "without_neighbours"]
 
@@ -72,8 +72,6 @@ _SHARP, _SHARP_PX = 1.5, 0.3
 _ITERATIONS = 15  # Levenberg-Marquardt steps of the one-step and one-blur fits
 _BLURS = (0.7, 1.4)  # the grid's blurs (px)
 _SOFT = 3.0  # a far step that fits better this many times softer is a penumbra
-_DISC_SLACK = 2.0  # see _one_disc_edge: a disc's edge 0.36-0.37, plates and shadows 4.5 and more
-_DISC_SCREEN, _DISC_SCREEN_RADII = 10.0, (0.8, 1.0, 1.25)  # ... the fit's screen
 _GRID_GAIN = 1.1  # the grid's start must fit this many times better than one step
 _D1 = np.arange(-_ON, _ON + 0.01, 0.5)  # the side's own step (px from the found side)
 _D2 = np.arange(-REACH + 1.0, REACH - 0.99, 0.5)  # the other one's
@@ -206,7 +204,7 @@ def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = N
         rms = math.sqrt(float(np.sum(wk[far] * (mk[far] - f) ** 2) / np.sum(wk[far])))
         if rms > _FLAT * abs(c2):
             continue
-        if _one_disc_edge(xk, mk, wk, foot[k], fit[:8], float(fit[8])):
+        if one_disc_edge(xk, mk, wk, foot[k], (c1, d1, c2, d2), float(fit[8])):
             continue
         found.append(Neighbour(int(k), float(d2 - d1), float(d1), float(c2), float(s2), gain,
                                float(c1)))
@@ -222,48 +220,6 @@ def neighbour_steps(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = N
     found = [n for n in found
              if n.side not in banded or (n.side + 2) % 4 in banded or n.side in rims]
     return found
-
-
-def _disc_cost(q: np.ndarray, x: np.ndarray, m: np.ndarray, sw: np.ndarray,
-               foot: np.ndarray) -> np.ndarray:
-    """The weighted residuals of one disc-defocused step at (place, radius) ``q``, its
-    level, slope and height by linear least squares."""
-    X = np.stack([np.ones_like(x), x, disc_edge(x - q[0], q[1], foot)])
-    beta = np.linalg.lstsq((X * sw).T, m * sw, rcond=None)[0]
-    return (m - beta @ X) * sw
-
-
-def _one_disc_edge(x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
-                   fit: np.ndarray, cost2: float) -> bool:
-    """Whether one step defocused by a disc fits the profile nearly as well as the two
-    steps of ``fit`` (a, g, s1, c1, d1, c2, d2, s2; residual sum ``cost2``): within
-    _DISC_SLACK times. A lens out of focus blurs by a disc, not a Gaussian: its edge ends
-    abruptly a radius out on either side, and two Gaussian steps a radius apart, each
-    half the edge's, fit it far better than one (a 4 px radius: 7-8 times, and each side
-    of a holder was taken for a step with a neighbour 3.2 px from it and measured again
-    1.5 px off). A plate's edge or a shadow's beside the side is a level between two
-    steps, which no one step fits."""
-    _a, _g, _s1, c1, d1, c2, d2, _s2 = (float(v) for v in fit)
-    if c1 * c2 <= 0:
-        return False  # two steps opposite ways: no one step of any blur makes them
-    sw = np.sqrt(w)
-    # (the two steps' heights' mean place, and a radius 1.25 times their distance: a
-    # disc's edge fits two Gaussian steps 0.8 of its radius apart)
-    at, radius = (c1 * d1 + c2 * d2) / (c1 + c2), max(1.25 * abs(d2 - d1), 1.0)
-    # a few radii there first: a plate's or a shadow's step misfits every one by far (the
-    # fit below costs 1-3 ms a side)
-    near = min(float(np.sum(_disc_cost(np.array([at, radius * f]), x, m, sw, foot) ** 2))
-               for f in _DISC_SCREEN_RADII)
-    if near > _DISC_SCREEN * cost2:
-        return False
-    try:
-        res = least_squares(_disc_cost, np.array([at, radius]), args=(x, m, sw, foot),
-                            method="trf", bounds=([-REACH, 0.5], [REACH, REACH]),
-                            max_nfev=60)
-    except (ValueError, np.linalg.LinAlgError):
-        return False
-    cost = float(np.sum(res.fun ** 2))
-    return cost <= _DISC_SLACK * cost2
 
 
 def _soft_far(x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
