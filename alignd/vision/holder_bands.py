@@ -327,11 +327,11 @@ def one_disc_edge(x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
     places c1, d1, c2, d2; residual sum ``cost2``): within _DISC_SLACK times. A lens out
     of focus blurs by a disc, not a Gaussian: its edge ends abruptly a radius out on
     either side, and two Gaussian steps a radius apart, each half the edge's, fit it far
-    better than one (a 4 px radius: 7-8 times): the neighbour
-    look took each side of such a holder for a step with a second one 3.2 px from it and
-    measured it again 1.5 px off, and the band check (:func:`side_bands`) took a side for
-    one between two steps and moved it in 1.1-1.5 px. A plate's edge or a shadow's beside
-    the side is a level between two steps, which no one step fits."""
+    better than one (a 4 px radius: 7-8 times). The neighbour look took each side of
+    such a holder for a step with a second one 3.2 px from it and measured it again
+    1.5 px off, and the band check (:func:`side_bands`) took a side for one between two
+    steps and moved it in 1.1-1.5 px. A plate's edge or a shadow's beside the side is a
+    level between two steps, which no one step fits."""
     c1, d1, c2, d2 = (float(v) for v in steps)
     if c1 * c2 <= 0:
         return False  # two steps opposite ways: no one step of any blur makes them
