@@ -305,8 +305,11 @@ def _finish(img: np.ndarray, rng: np.random.Generator, *, blur: float, read_nois
 
 def _drawn_8bit(img: np.ndarray, blur_px: float, noise_dn: float, seed: int) -> np.ndarray:
     """A drawn scene's exact levels as an 8-bit frame: blurred by a Gaussian of
-    ``blur_px``, with read noise of ``noise_dn`` (rms) from ``seed``, rounded and clipped."""
-    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), blur_px)
+    ``blur_px`` (0: not), with read noise of ``noise_dn`` (rms) from ``seed``, rounded and
+    clipped."""
+    img = img.astype(np.float32)
+    if blur_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
     noise = np.random.default_rng(seed).normal(0, noise_dn, img.shape)
     return np.clip(np.rint(img + noise), 0, 255).astype(np.uint8)
 
@@ -711,11 +714,7 @@ def disc_defocus_scene(radius_px: float, angle_deg: float, seed: int = 0,
     held = rectangle((640.3, 360.7), 260.0, 160.0, angle_deg)
     sharp = np.full((h, w), disc, np.float32)
     sharp += (body - sharp) * coverage(Polygon(held), ras, (0, 0, w, h)).astype(np.float32)
-    img = cv2.filter2D(sharp, -1, disc_kernel(radius_px))
-    if gauss_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), gauss_px)
-    noise = np.random.default_rng(seed).normal(0, 1.0, img.shape)
-    out = np.clip(np.rint(img + noise), 0, 255).astype(np.uint8)
+    out = _drawn_8bit(cv2.filter2D(sharp, -1, disc_kernel(radius_px)), gauss_px, 1.0, seed)
     return (out if jpeg_quality is None else mjpeg(out, jpeg_quality)), held
 
 
