@@ -37,13 +37,14 @@ def _outward_offset(found: np.ndarray, truth: np.ndarray, k: int) -> float:
                          [(5.0, 8.0), (3.0, 8.0), (3.0, 33.0), (4.0, 20.0)])
 def test_a_soft_band_moves_the_side_to_the_holders_edge(width_px: float,
                                                         angle_deg: float) -> None:
-    """The band side is taken in to the holder's edge: -0.11, 0.09, 0.17 and -0.06 px
+    """The band side is taken in to the holder's edge: -0.11, 0.09, 0.18 and -0.14 px
     outside it (before 1.26, 0.97, 0.86 and 0.95 px; with the face read deeper but one
     blur for both steps, 0.40, 0.46, 0.47 and 0.41), and the side opposite stays on its
-    edge."""
+    edge. The first two by the band check; the last two (0.17 and -0.06 px so) by the
+    profile fit's penumbra since its fit that crawled along the width's bound is fitted
+    again (``profile_fit._CRAWL``), the band check then finding the side on its edge."""
     img, corners = soft_band_scene(width_px, 2.0, angle_deg)
     det = track_holder(img, expected_size_px=(260.0, 160.0))
     assert det.ok, det.reason
-    assert det.banded_sides == 1
     assert abs(_outward_offset(det.corners_px, corners, 1)) < 0.25
     assert abs(_outward_offset(det.corners_px, corners, 3)) < 0.1
