@@ -51,7 +51,6 @@ def test_a_holder_through_a_lens_out_of_focus(radius_px: float, angle_deg: float
     assert float(np.max(np.linalg.norm(order_corners(det.corners_px, t) - t, axis=1))) < 0.1
 
 
-
 @pytest.mark.parametrize(("levels", "gauss_px", "seed"), [
     ((60.0, 180.0), 0.0, 31),
     ((200.0, 60.0), 0.5, 30),
@@ -68,6 +67,7 @@ def test_a_disc_edge_is_not_a_penumbra(levels: tuple[float, float], gauss_px: fl
     assert det.ok, det.reason
     t = order_corners(corners)
     assert float(np.max(np.linalg.norm(order_corners(det.corners_px, t) - t, axis=1))) < 0.1
+
 
 # the random generator's state just before corpus scenes #90 and #846 of seed 2124 (the
 # bench's; "everything", JPEG q 63 and 60), so that each is drawn alone
