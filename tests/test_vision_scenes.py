@@ -32,6 +32,20 @@ def _corner_errors(corners: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return np.linalg.norm(order_corners(corners, t) - t, axis=1)
 
 
+def test_a_cast_shadow_records_its_blur() -> None:
+    """A top scene's cast shadow records its penumbra's blur (2-10 px) beside its offset
+    and depth: the corpora's worst sides lie beside it, and whoever studies them needs
+    it."""
+    blurs = []
+    for seed in range(3):
+        cast = random_top_scene(np.random.default_rng(seed), "shadows", (640, 480)
+                                ).params["cast_shadow"]
+        assert isinstance(cast, dict)
+        blurs.append(cast["blur_px"])
+    assert all(2.0 <= b <= 10.0 for b in blurs)
+    assert len(set(blurs)) == 3
+
+
 def test_scenes_are_reproducible_and_encoded_as_asked() -> None:
     a = random_top_scene(np.random.default_rng(3), "12-bit")
     b = random_top_scene(np.random.default_rng(3), "12-bit")
