@@ -751,9 +751,10 @@ def soft_bands(quick: bool) -> list[Target]:
     """A holder's cast shadow 2-8 px beyond one side, blurred by 1, 2 or 4 px, in a frame
     blurred 2.2 px (:func:`soft_band_scene`: the corpus' cast shadows, one side's worth,
     in a defocused camera): the band's outer step is softer than the holder's edge, and
-    with a 2 px shadow blur 6 of 20 such holders were returned 1.0-1.4 px wrong
-    (docs/vision.md, "A soft band"). Per shadow blur: bands 2, 3, 4, 5 and 8 px wide at
-    4 angles (the quick run: 3 and 5 px at 2 angles)."""
+    with a 2 px shadow blur 6 of 20 such holders were returned 1.0-1.4 px wrong, with a
+    1 px one 4 of 20, 1.3 px (docs/vision.md, "A soft band", "Two steps 1.3 blurs
+    apart"). Per shadow blur: bands 2, 3, 4, 5 and 8 px wide at 4 angles (the quick run:
+    3 and 5 px at 2 angles)."""
     widths = (3.0, 5.0) if quick else (2.0, 3.0, 4.0, 5.0, 8.0)
     angles = (8.0, 33.0) if quick else (8.0, 20.0, 33.0, -15.0)
     return [_drawn(f"soft shadow band, shadow blur {blur:g} px",

@@ -48,3 +48,22 @@ def test_a_soft_band_moves_the_side_to_the_holders_edge(width_px: float,
     assert det.ok, det.reason
     assert abs(_outward_offset(det.corners_px, corners, 1)) < 0.25
     assert abs(_outward_offset(det.corners_px, corners, 3)) < 0.1
+
+
+@pytest.mark.parametrize("angle_deg", [20.0, -15.0])
+def test_a_sharper_shadows_band_is_resolved_at_1_4_blurs(angle_deg: float) -> None:
+    """A 3 px band whose shadow is blurred by 1 px only: its two steps lie 1.34-1.45 of
+    their fitted blur apart, under the band check's old 1.5 (``holder_bands._RESOLVED``),
+    and the side stayed between them, 1.33-1.34 px off at a stated corner sigma of
+    0.03 px (a wrong holder returned as right). Now the band is taken: the side is
+    within half a pixel of the holder's edge (0.20 and -0.33 px) and the corners' stated
+    sigma grows with the inner step's (0.07 and 0.40 px)."""
+    img, corners = soft_band_scene(3.0, 1.0, angle_deg)
+    det = track_holder(img, expected_size_px=(260.0, 160.0))
+    assert det.ok, det.reason
+    assert det.banded_sides == 1
+    assert abs(_outward_offset(det.corners_px, corners, 1)) < 0.5
+    assert abs(_outward_offset(det.corners_px, corners, 3)) < 0.1
+    truth = order_corners(corners)
+    err = np.linalg.norm(order_corners(det.corners_px, truth) - truth, axis=1)
+    assert float(err.max()) < 1.0

@@ -54,8 +54,10 @@ _ALONG = (0.15, 0.85)  # the part of the side read (corners and their shadows le
 # the decision (docs/vision.md, "A side between two steps"): two steps of one sign fit a
 # side _MIN_GAIN times better than one, their sum within _WHOLE of the side's whole step
 # (tails to tails), their blur at most _SHARPER px over the one step's, at least _MIN_SEP
-# px and _RESOLVED blurs apart (a defocus that is not Gaussian fits two steps 1.3 blurs
-# apart better than one), the smaller at least _MIN_SHARE of both (bands nearly as dark
+# px and _RESOLVED blurs apart (1.5 once: seed 6100 #654, an edge blurred 1.5 px,
+# fitted two steps 1.3 blurs apart 5 times better than one; the misfit rule below now
+# holds it even at 1.2, and a soft band 3 px wide in a 2.2 px blur is 1.34-1.45 blurs:
+# 1.3 px wrong at 1.5), the smaller at least _MIN_SHARE of both (bands nearly as dark
 # as the holder: 0.18-0.20), and the found side at least _MIN_OFF px outside the inner
 # one and either _MIN_IN px inside the outer one or within _ON_OUTER px of it with the
 # inner one at most _MAX_IN px in (farther in, a second step 5-7 px inside a corpus face
@@ -68,7 +70,7 @@ _MIN_GAIN = 3.0
 _WHOLE = 0.3
 _SHARPER = 0.3
 _MIN_SEP = 0.6
-_RESOLVED = 1.5
+_RESOLVED = 1.3
 _MIN_SHARE = 0.15
 # ... or at least _MIN_SHARE_CLEAR where two steps fit _CLEAR_GAIN times better than one:
 # a band 1.5 px wide along a side square to the pixel grid, sampled once a pixel, reads
