@@ -52,8 +52,8 @@ def test_a_soft_band_moves_the_side_to_the_holders_edge(width_px: float,
 
 @pytest.mark.parametrize("angle_deg", [20.0, -15.0])
 def test_a_sharper_shadows_band_is_resolved_at_1_4_blurs(angle_deg: float) -> None:
-    """A 3 px band whose shadow is blurred by 1 px only: its two steps lie 1.34-1.45 of
-    their fitted blur apart, under the band check's old 1.5 (``holder_bands._RESOLVED``),
+    """A 3 px band whose shadow is blurred by 1 px only: its two steps lie 1.45 and 1.49
+    of their fitted blur apart, under the band check's old 1.5 (``holder_bands._RESOLVED``),
     and the side stayed between them, 1.33-1.34 px off at a stated corner sigma of
     0.03 px (a wrong holder returned as right). Now the band is taken: the side is
     within half a pixel of the holder's edge (0.20 and -0.33 px) and the corners' stated

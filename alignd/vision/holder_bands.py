@@ -56,7 +56,7 @@ _ALONG = (0.15, 0.85)  # the part of the side read (corners and their shadows le
 # (tails to tails), their blur at most _SHARPER px over the one step's, at least _MIN_SEP
 # px and _RESOLVED blurs apart (1.5 once: seed 6100 #654, an edge blurred 1.5 px,
 # fitted two steps 1.3 blurs apart 5 times better than one; the misfit rule below now
-# holds it even at 1.2, and a soft band 3 px wide in a 2.2 px blur is 1.34-1.45 blurs:
+# holds it even at 1.2, and a soft band 3 px wide in a 2.2 px blur is 1.34-1.49 blurs:
 # 1.3 px wrong at 1.5), the smaller at least _MIN_SHARE of both (bands nearly as dark
 # as the holder: 0.18-0.20), and the found side at least _MIN_OFF px outside the inner
 # one and either _MIN_IN px inside the outer one or within _ON_OUTER px of it with the
