@@ -212,8 +212,8 @@ def corpus_bound(n: int, seed: int
             continue
         gray = as_gray(sc.image, "top image")
         var = _scene_variance(gray, sc.params, sc.encoding.bits)
-        bound = corner_bound(gray, truth, _num(sc.params, "blur_px"), var)
-        rect = corner_bound(gray, truth, _num(sc.params, "blur_px"), var, "rectangle")
+        bound = corner_bound(gray, truth, scene_number(sc.params, "blur_px"), var)
+        rect = corner_bound(gray, truth, scene_number(sc.params, "blur_px"), var, "rectangle")
         for key in (cat, "total"):
             e2, b2, r2 = out.setdefault(key, ([], [], []))
             e2.extend((err ** 2).tolist())
@@ -254,7 +254,7 @@ def edge_angle_bound(gray: np.ndarray, var: np.ndarray, x_mid: float, y_mid: flo
     return math.degrees(math.sqrt(float(np.linalg.inv(info)[1, 1])))
 
 
-def _num(params: dict[str, object], key: str) -> float:
+def scene_number(params: dict[str, object], key: str) -> float:
     """A scene's numeric parameter (the scene generator records its draws)."""
     v = params[key]
     if not isinstance(v, (int, float)):
@@ -264,8 +264,8 @@ def _num(params: dict[str, object], key: str) -> float:
 
 def _scene_variance(gray: np.ndarray, params: dict[str, object], bits: int) -> np.ndarray:
     """A corpus frame's pixel variances from the noise model its scene recorded."""
-    return pixel_variance(gray, _num(params, "read_noise_dn"),
-                          _num(params, "electrons_per_dn"), 255.0 if bits == 8 else 4095.0)
+    return pixel_variance(gray, scene_number(params, "read_noise_dn"),
+                          scene_number(params, "electrons_per_dn"), 255.0 if bits == 8 else 4095.0)
 
 
 def _tilt_bound(gray: np.ndarray, var: np.ndarray, blur_px: float, m: SideMeasurement,
@@ -305,7 +305,7 @@ def corpus_side_bound(n: int, seed: int, frames: int = 8
             continue
         gray = as_gray(sc.frames[0], "side image")
         var = _scene_variance(gray, sc.params, sc.encoding.bits)
-        blur = _num(sc.params, "blur_px")
+        blur = scene_number(sc.params, "blur_px")
         bounds = [_tilt_bound(gray, var, blur, first, sc.sample_angle_deg,
                               sc.pole_angle_deg, free) for free in (True, False)]
         tilts = np.array([m.tilt_deg for m in av.frames])

@@ -36,6 +36,10 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the vision benches' helpers
+
+from vision import print_table  # noqa: E402
+from vision_bounds import scene_number  # noqa: E402
 
 from alignd.errors import VisionError  # noqa: E402
 from alignd.vision.holder import track_holder  # noqa: E402
@@ -65,13 +69,6 @@ class SideRecord:
         return self.shadow_px / self.penumbra_px
 
 
-def _num(params: dict[str, object], key: str) -> float:
-    v = params.get(key)
-    if not isinstance(v, int | float):
-        raise TypeError(f"scene params: {key} is {v!r}, not a number")
-    return float(v)
-
-
 def scene_sides(seed: int, i: int, sc: TopSceneSample) -> list[SideRecord]:
     """The sides of ``sc``'s holder as found (none where it was not, or compressed),
     in the scene's own corner order (side 0 along the sample plate, if any)."""
@@ -89,7 +86,7 @@ def scene_sides(seed: int, i: int, sc: TopSceneSample) -> list[SideRecord]:
     near = np.argmin(np.linalg.norm(det.corners_px[None] - truth[:, None], axis=2), axis=1)
     got = det.corners_px[near]
     cast = sc.params.get("cast_shadow")
-    plate = _num(sc.params, "sample_px") > 0 if "sample_px" in sc.params else False
+    plate = scene_number(sc.params, "sample_px") > 0 if "sample_px" in sc.params else False
     out = []
     for k in range(4):
         if k == 0 and plate:
@@ -102,7 +99,7 @@ def scene_sides(seed: int, i: int, sc: TopSceneSample) -> list[SideRecord]:
         off = 0.5 * float(np.dot(got[k] - a, n) + np.dot(got[(k + 1) % 4] - b, n))
         if isinstance(cast, dict):
             d = float(np.dot(np.asarray(cast["offset_px"], float), n))
-            width = math.hypot(float(cast["blur_px"]), _num(sc.params, "blur_px"))
+            width = math.hypot(float(cast["blur_px"]), scene_number(sc.params, "blur_px"))
             depth = float(cast["depth"])
         else:
             d, width, depth = math.nan, math.nan, math.nan
@@ -121,23 +118,23 @@ def corpus_sides(seed: int, n: int) -> list[SideRecord]:
     return out
 
 
-def _row(label: str, sides: list[SideRecord]) -> str:
+def _row(label: str, sides: list[SideRecord]) -> tuple[str, ...]:
     if not sides:
-        return f"{label:30s} {0:6d}"
-    o = np.array([s.offset_px for s in sides])
-    return (f"{label:30s} {o.size:6d} {math.sqrt(float(np.mean(o * o))):8.3f} "
-            f"{float(np.mean(o)):+8.3f} {float(np.max(np.abs(o))):7.2f} "
-            f"{int(np.sum(np.abs(o) > 0.15)):7d} {int(np.sum(np.abs(o) > 0.25)):7d}")
+        return (label, "0", "", "", "", "", "")
+    o = np.abs(np.array([s.offset_px for s in sides]))
+    return (label, str(o.size), f"{math.sqrt(float(np.mean(o * o))):.3f}",
+            f"{float(np.mean([s.offset_px for s in sides])):+.3f}", f"{float(np.max(o)):.2f}",
+            str(int(np.sum(o > 0.15))), str(int(np.sum(o > 0.25))))
 
 
-def print_table(sides: list[SideRecord]) -> None:
-    print(f"{'where the shadow edge lies':30s} {'sides':>6s} {'RMS px':>8s} {'mean px':>8s} "
-          f"{'max px':>7s} {'> 0.15':>7s} {'> 0.25':>7s}")
-    print(_row("no cast shadow", [s for s in sides if math.isnan(s.shadow_px)]))
+def print_sides(sides: list[SideRecord]) -> None:
     shaded = [s for s in sides if not math.isnan(s.shadow_px)]
-    for lo, hi in itertools.pairwise(_BINS):
-        print(_row(f"  {lo:g} to {hi:g} penumbra widths",
-                   [s for s in shaded if lo <= s.widths_out < hi]))
+    rows = [_row("no cast shadow", [s for s in sides if math.isnan(s.shadow_px)])]
+    rows += [_row(f"  {lo:g} to {hi:g} penumbra widths",
+                  [s for s in shaded if lo <= s.widths_out < hi])
+             for lo, hi in itertools.pairwise(_BINS)]
+    print_table(("where the shadow edge lies", "sides", "RMS px", "mean px", "max px",
+                 "> 0.15", "> 0.25"), rows)
     worst = sorted(sides, key=lambda s: -abs(s.offset_px))[:_WORST]
     print(f"\nthe {len(worst)} worst sides (shadow edge px out / penumbra width px / depth)")
     for s in worst:
@@ -160,7 +157,7 @@ def main() -> None:
     print(f"top corpora {', '.join(map(str, seeds))} ({n} scenes each): uncompressed sides "
           "found, their offsets (px, + outward) by where the holder's cast shadow's edge "
           "lies beside them")
-    print_table(sides)
+    print_sides(sides)
 
 
 if __name__ == "__main__":
