@@ -34,7 +34,7 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from functools import partial
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -227,6 +227,10 @@ class HolderDetection:
     # found only by the second, fainter search (:data:`FAINT_CONTRAST`), or tracked from
     # such a detection: its sides step less than the min_contrast asked for
     faint: bool = False
+    # whether the profile fit modelled a cast shadow's penumbra beside a side
+    # (:func:`alignd.vision.profile_fit.fit_profiles`); tracking looks for one again only
+    # then, or where a side moved
+    penumbra: bool = False
 
     @property
     def warning(self) -> str:
@@ -339,21 +343,30 @@ def _ideal(pts: EdgePoints, lens: Lens | None) -> EdgePoints:
 
 def _profile_sides(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]],
                    half_width: int, margin: float, lens: Lens | None = None,
-                   blur: np.ndarray | None = None
-                   ) -> tuple[list[tuple[Line | None, EdgePoints]], np.ndarray, float]:
+                   blur: np.ndarray | None = None, penumbra: bool = True
+                   ) -> tuple[list[tuple[Line | None, EdgePoints]], np.ndarray, float, bool]:
     """The area method's crossings (``margin`` px short of the corners) refined by the
     profile fit, which reaches nearer the corners, their lines, each side's blur
-    (``blur``: known widths, see :func:`fit_profiles`) and how far the area method's
+    (``blur``: known widths, see :func:`fit_profiles`), how far the area method's
     corners may lie from them for a penumbra beside a side (the profile fit models it,
     the area method does not: a corner moves with both of its sides, sqrt(2) times the
-    largest side's move)."""
+    largest side's move) and whether a penumbra was modelled (``penumbra``: looked for)."""
     fit = fit_profiles(gray, [pts for _ln, pts in sides], half_width=half_width, blur=blur,
-                       corner_gap_px=margin)
+                       corner_gap_px=margin, penumbra=penumbra)
     bent = math.sqrt(2.0) * float(np.max(np.abs(fit.bend_px), initial=0.0))
     ideal = [_ideal(f, lens) for f in fit.edges]
     # (sides whose directions agree with a rectangle's share it: holder_square)
     lines = square_sides([fit_line(p) for p in ideal], ideal)
-    return list(zip(lines, fit.edges, strict=True)), fit.widths, bent
+    return list(zip(lines, fit.edges, strict=True)), fit.widths, bent, fit.penumbra
+
+
+class _Prior(NamedTuple):
+    """What tracking reuses of the previous detection where its sides held."""
+
+    corners: np.ndarray
+    blur: np.ndarray  # each side's blur width (px)
+    banded: bool  # a side lay between two steps
+    penumbra: bool  # a penumbra lay beside a side
 
 
 def _side_match(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -396,8 +409,8 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
     # tracking reads a few thousand pixels: an 8-bit frame is used as it is (no copy)
     gray = raw if raw.ndim == 2 and raw.dtype == np.uint8 and min(raw.shape) >= 16 else \
         as_gray(image, "top image")
-    # previous corners, side blurs, and whether a side of it lay between two steps
-    prior: tuple[np.ndarray, np.ndarray, bool] | None = None
+    # what the previous detection found, reused where its sides held
+    prior: _Prior | None = None
     # whether to look for a second step beside the sides: a plate or a floor step is rigid
     # with the holder or the rig, so a tracked frame looks only where the previous one
     # found one (3-4 ms a frame otherwise)
@@ -410,8 +423,8 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
             track_contrast = min(min_contrast, FAINT_CONTRAST)
         neighbours = bool(hint.neighbour_sides)
         if len(hint.side_blur_px) == 4 and np.all(np.isfinite(hint.side_blur_px)):
-            prior = (np.asarray(hint.corners_px, float), np.asarray(hint.side_blur_px),
-                     bool(hint.banded_sides))
+            prior = _Prior(np.asarray(hint.corners_px, float), np.asarray(hint.side_blur_px),
+                           bool(hint.banded_sides), hint.penumbra)
     else:
         hint_arr = None if hint is None else np.asarray(hint, float)
     reasons: list[str] = []
@@ -442,8 +455,8 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
                                 neighbours=neighbours)
                 if again.ok:
                     det = again
-            if det.ok and (prior is None or _shift(order_corners(det.corners_px, prior[0]),
-                                                    prior[0]) > 1.0):
+            if det.ok and (prior is None or _shift(order_corners(det.corners_px, prior.corners),
+                                                    prior.corners) > 1.0):
                 # (a holder within a pixel of the previous detection's corners has its
                 # sides on the same edges, which that detection's check cleared)
                 det = _looked_again(gray, det, polarity, expected_size_px, hint_arr,
@@ -797,13 +810,14 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
             expected_size_px: tuple[float, float] | None, hint: np.ndarray | None,
             min_contrast: float, max_rms_px: float, passes: int, lens: Lens | None = None,
             size_tolerance: float = 0.15, profile: bool = True, seeded: bool = False,
-            prior: tuple[np.ndarray, np.ndarray, bool] | None = None,
+            prior: _Prior | None = None,
             neighbours: bool = True) -> HolderDetection:
     """Fine fit from approximate corners (a coarse box or, ``seeded``, the previous frame's
-    corners; ``prior``: those corners and their sides' blurs, reused when the sides held,
-    and whether a side lay between two steps: if none did, the sides that held are not
-    looked at for a band again, :func:`_off_the_bands`; ``neighbours``: whether to look
-    for a second step beside the sides, :func:`_off_the_neighbours`)."""
+    corners; ``prior``: what the previous detection found, reused when the sides held:
+    the sides' blurs, whether a side lay between two steps (if none did, the sides are not
+    looked at for a band again, :func:`_off_the_bands`) and whether a penumbra lay beside
+    one (if none did, the profile fit does not look for one); ``neighbours``: whether to
+    look for a second step beside the sides, :func:`_off_the_neighbours`)."""
     # (the fine windows straight on the previous sides: with a lens, only where they bow
     # little between their corners; the coarse search runs otherwise)
     sides = _fit_sides(gray, corners, _HALF_WIDTH, _MARGIN, min_contrast, lens) \
@@ -811,11 +825,15 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
     blur, bands = None, True
     if sides is not None and _seed_holds(sides, corners, max_rms_px, lens):
         # every side within a pixel of where it was: its blur is the previous frame's,
-        # and so is its edge's make (one step or two: 2-5 ms a frame to tell)
+        # and so is its edge's make (one step or two: 2-5 ms a frame to tell; a penumbra
+        # beside it or none: 1.5-2 ms)
+        penumbra = True
         if prior is not None:
-            blur, bands = prior[1][_side_match(prior[0], corners)], prior[2]
+            blur = prior.blur[_side_match(prior.corners, corners)]
+            bands, penumbra = prior.banded, prior.penumbra
         det = _finish(gray, corners, sides, polarity, expected_size_px, hint, min_contrast,
-                      max_rms_px, lens, size_tolerance, profile, blur, bands, neighbours)
+                      max_rms_px, lens, size_tolerance, profile, blur, bands, neighbours,
+                      penumbra)
         if not (profile and det.ok and not det.side_blur_px):
             return det
         # the profile fit did not confirm the area method's corners on the previous
@@ -900,11 +918,11 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
             hint: np.ndarray | None, min_contrast: float, max_rms_px: float,
             lens: Lens | None, size_tolerance: float, profile: bool,
             blur: np.ndarray | None = None, bands: bool = True,
-            neighbours: bool = True) -> HolderDetection:
+            neighbours: bool = True, penumbra: bool = True) -> HolderDetection:
     """The detection from the sides' area-method fits: checked, widened for soft edges,
-    refined by the profile fit where that agrees, and its sides moved off a band beside
-    them (``bands``) or measured again without a second step near them
-    (``neighbours``)."""
+    refined by the profile fit where that agrees (``penumbra``: whether it looks for a
+    penumbra beside a side), and its sides moved off a band beside them (``bands``) or
+    measured again without a second step near them (``neighbours``)."""
     pol = _polarity(gray, corners)
     # a side beside a strip (a white sample beside a grey holder on a dark disc) may
     # contrast the other way
@@ -927,13 +945,14 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                        size_tolerance)
     elif profile:
         # the sides it passed, refined by the profile fit: kept when they pass as well
-        fine, widths, bent = _profile_sides(gray, used, hw, margin, lens, blur)
+        fine, widths, bent, pen = _profile_sides(gray, used, hw, margin, lens, blur,
+                                                 penumbra)
         # opposite sides somewhat unalike are fitted again alike (so unlike that they
         # cannot be one face's, they are left as they are, for the refusal below)
         alike = (_alike_opposite_blurs(widths) if blur is None and not
                  _unlike_opposite_blurs(tuple(float(v) for v in widths)) else None)
         if alike is not None:
-            fine, widths, bent = _profile_sides(gray, used, hw, margin, lens, alike)
+            fine, widths, bent, pen = _profile_sides(gray, used, hw, margin, lens, alike)
         det3 = assemble(fine, corners, pol, expected_size_px, hint, max_rms_px, lens,
                         size_tolerance)
         # two estimates of the same corners must agree within the area method's
@@ -977,7 +996,8 @@ def _finish(gray: np.ndarray, corners: np.ndarray, sides: list[tuple[Line | None
                 agree = moved <= _AGREE_PX + _AGREE_SIGMA * det2.fit_sigma_px + bent
         if agree:
             det = replace(det3, side_blur_px=tuple(
-                float(v) for v in widths[_side_match(corners, det3.corners_px)]))
+                float(v) for v in widths[_side_match(corners, det3.corners_px)]),
+                penumbra=pen)
             why = _unlike_opposite_blurs(det.side_blur_px)
         else:
             det = assemble(used, corners, pol, expected_size_px, hint, max_rms_px, lens,
@@ -1289,11 +1309,14 @@ def _columns_span(ln: Line, pts: EdgePoints) -> tuple[float, bool]:
     t = np.sort(pts.xy[resid <= 3.5 * max(ln.rms_px, 0.01)] @ np.array([-ln.n[1], ln.n[0]]))
     if t.size == 0:
         return 0.0, False
-    cut = np.flatnonzero(np.diff(t) > _RUN_GAP_PX) + 1
-    runs = np.split(t, cut)
-    kept = [r for r in runs if r.size >= _RUN_COLUMNS]
-    span = float(max(r[-1] for r in kept) - min(r[0] for r in kept)) if kept else 0.0
-    return span, len(kept) < len(runs)
+    # the runs' first and last columns (t ascending: the kept runs' span is the first
+    # kept one's start to the last kept one's end)
+    gap = np.flatnonzero(np.diff(t) > _RUN_GAP_PX)
+    first = np.concatenate(([0], gap + 1))
+    last = np.concatenate((gap, [t.size - 1]))
+    kept = np.flatnonzero(last - first + 1 >= _RUN_COLUMNS)
+    span = float(t[last[kept[-1]]] - t[first[kept[0]]]) if kept.size else 0.0
+    return span, kept.size < first.size
 
 
 def _assemble(sides: list[tuple[Line | None, EdgePoints]], corners: np.ndarray, pol: str,

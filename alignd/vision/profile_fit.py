@@ -909,6 +909,7 @@ class ProfileFit:
     edges: list[EdgePoints]
     widths: np.ndarray
     bend_px: np.ndarray
+    penumbra: bool = False  # a penumbra beside an edge was modelled
 
 
 def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int = 5,
@@ -923,8 +924,8 @@ def fit_crossings_blur(gray: np.ndarray, edges: list[EdgePoints], *, half_width:
 
 def fit_profiles(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int = 5,
                  iterations: int = 2, max_half_width: int = 10,
-                 blur: np.ndarray | None = None, corner_gap_px: float | None = None
-                 ) -> ProfileFit:
+                 blur: np.ndarray | None = None, corner_gap_px: float | None = None,
+                 penumbra: bool = True) -> ProfileFit:
     """Refine the area-method crossings of straight edges (one EdgePoints each) by the
     profile fit, all edges in one batch (every step is a few array operations for all the
     columns of all the edges together: the cost is that of the arithmetic, not of the
@@ -947,6 +948,10 @@ def fit_profiles(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int =
     window. The positions then reach further, as close to the corners as the edge's own
     blur and slope let the position window stay clear of the neighbour
     (:func:`_corner_clearance`; the end columns are the corners' lever).
+
+    ``penumbra``: whether to look for a cast shadow's penumbra beside the edges
+    (:func:`_penumbra_bend`; a tracked frame whose sides held, where the previous one had
+    none, does not); ``penumbra`` of the result: whether one was modelled.
     """
     empty = [EdgePoints(np.empty((0, 2)), np.empty(0), e.vertical) for e in edges]
     given_n = [e.xy.shape[0] for e in edges]
@@ -1070,7 +1075,7 @@ def fit_profiles(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int =
     ok1 = np.isfinite(u) & np.isfinite(D)
     u1 = np.where(ok1, u, r1.c - centre)
     bend = _penumbra_bend(flat, r1, u1, np.where(ok1, D, 0.0), hw, table, geo, b1, b2, ne,
-                          blur_e)
+                          blur_e) if penumbra else None
     if bend is not None:
         u, D, misfit = _fit_tabulated(P, x, u1, r1.edge, blur_e, geo, b1, b2, iterations,
                                       table, (bend.lo, bend.hi), clipped)
@@ -1107,4 +1112,4 @@ def fit_profiles(gray: np.ndarray, edges: list[EdgePoints], *, half_width: int =
         vertical = edges[i].vertical
         xy = xy_columns(q, t) if vertical else xy_columns(t, q)
         out[i] = EdgePoints(xy, D[sel], vertical)
-    return ProfileFit(out, widths, bend_px)
+    return ProfileFit(out, widths, bend_px, bend is not None)
