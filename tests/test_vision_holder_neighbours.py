@@ -217,3 +217,23 @@ def test_a_candidate_with_bare_sides_is_not_looked_at_again(monkeypatch, shift) 
     det = holder._finish(gray, box, sides, None, _SIZE, None, 15.0, 0.6, None, 0.12, True)
     assert not det.ok and "no edge found" in det.reason
     assert not looked
+
+
+def test_a_plate_is_found_from_sides_a_fraction_of_a_pixel_out() -> None:
+    """The neighbour look starts its two-step fit on a 0.5 px grid of places and first
+    asks whether the far step fits better three times softer (a penumbra). With the side's
+    own step held at the grid's place, a side found 0.2 px off it misfit there by ten
+    times its best, the softer far step spread to cover that, and the plate 4 px inside
+    both long sides of a dark holder was dropped for sides 0.23, 0.26 and 0.27 px out (of
+    0-0.4 px in 0.01 steps). The side's own step is now placed within half the grid's
+    spacing before it is judged."""
+    img, held = plate_scene((4.0, 20.0, 4.0, 20.0), 0.0, (200.0, 60.0, 20.0))
+    c = order_corners(held)
+    for off in np.arange(0.0, 0.401, 0.01):
+        at = c.copy()
+        at[:2, 1] -= off  # the long sides (0 and 2, along x) moved out
+        at[2:, 1] += off
+        steps = neighbour_steps(img, at)
+        assert sorted(n.side for n in steps) == [0, 2], off
+        for n in steps:
+            assert abs(n.at_px + 4.0) < 0.1 and abs(n.own_px + off) < 0.1
