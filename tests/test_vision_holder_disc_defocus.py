@@ -60,8 +60,8 @@ def test_a_disc_edge_is_not_a_penumbra(levels: tuple[float, float], gauss_px: fl
     """A 5 px disc at 45 deg (the bench's "lens out of focus" frames 31 and 30): a
     penumbra fitted with the edge, held at its least width, took up the disc edge's
     shoulders and moved a side 0.58 and 0.67 px at a stated corner sigma of 0.03 px
-    (on one machine; on another the fit did not converge there). Now such a fit is
-    refused (``profile_fit._PINNED``): within 0.1 px (measured 0.04 and 0.08)."""
+    (on one machine; on another the fit did not converge there). Now a fit that stays at
+    the least width is refused (``profile_fit._CRAWL``): within 0.1 px."""
     img, corners = disc_defocus_scene(5.0, 45.0, seed=seed, levels=levels, gauss_px=gauss_px)
     det = track_holder(img, expected_size_px=(260.0, 160.0))
     assert det.ok, det.reason

@@ -43,7 +43,7 @@ suffice.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
@@ -253,26 +253,30 @@ _BEND_CHI2 = 400.0
 _BEND_MIN_DN = 0.1  # a penumbra's bend smaller than this everywhere in the window is none
 _BEND_CLIP = 0.01  # a side's profile with more of its pixels clipped is not read for a bend
 _PEN_WIDER = 1.5  # a penumbra's width, at least this many times the edge's blur
-# a joint fit whose penumbra ends at that least width (within _PINNED of it) and centred
-# within _PINNED_NEAR widths of the edge wanted a narrower one on the edge: the edge's own
-# profile is not the model's Gaussian, and the penumbra takes up the difference. A lens
-# out of focus blurs by a disc, whose edge's shoulders a penumbra at the bound beside a
-# Gaussian edge fits (centred 0.5 widths out): sides 0.6-0.7 px off at a corner sigma of
-# 0.03 px (bench "lens out of focus", 5 px disc at 45 deg, on one machine and not
-# another: the fit converged there or not by its last bits). Right penumbrae end above
-# the bound (five corpora, the disc's among them: no scene's worst corner moved 0.01 px);
-# one at the bound 3.4 widths out is a second step beside the edge as sharp as it (a
-# plate 4 px inside, tests/test_vision_holder_neighbours.py), whose fit the neighbour
-# look's start needs
-_PINNED, _PINNED_NEAR = 1e-4, 2.0
 _SG_MAX = 15.0  # a penumbra's width, at most (px)
-# a joint fit out of evaluations with its width within _CRAWL of the bound crawled along
-# it (a penumbra centred on a side: the shadow under a holder, blurred 3 px in a frame
-# blurred 1.6 px, 2 sides of 4 gave up and read 0.28 px out); it is fitted once more with
-# the bound written into the width (its logistic from _CRAWL_START: 0.05 of the way up),
-# and taken where that lifts the width off the bound (those sides: 4.6 and 30 % above
-# it; through a disc, corpus 2124 #118, #657 and #923 went back to it, 11-17 px out)
+# a joint fit that ends with its width within _CRAWL of the bound is fitted once more
+# with the bound written into the width (its logistic from _CRAWL_START: 0.05 of the way
+# up) and taken only where that lifts the width off the bound. The data may hold a right
+# penumbra near the bound, which the penalty's wall stops short of: a penumbra centred on
+# a side (the shadow under a holder, blurred 3 px in a frame blurred 1.6 px) crawled along
+# the bound until out of evaluations, 2 sides of 4 read 0.28 px out, and from the bound
+# written in they came out 4.6 and 30 % above it. A penumbra that stays at its least
+# width is something narrower than a shadow's penumbra, which the profile does not place:
+# a lens's disc edge's shoulders (centred 0.5 widths out: sides 0.6-0.7 px off at a
+# corner sigma of 0.03 px, bench "lens out of focus"), a rounded corner's arc (2.5 widths
+# inside), a plate's step as sharp as the edge (3.4 widths out, which the neighbour look
+# then finds), penumbrae 11-17 px out through a disc (corpus 2124 #118, #657, #923)
 _CRAWL, _CRAWL_START = 1e-3, -3.0
+# the joint fit's evaluations of its residuals, at most: with its Jacobian about one an
+# iteration, more where a step is refused (the finite-difference Jacobian's fit took five
+# an iteration, of 200; at 40, corpus 6100 #856 stopped 3 short of converging)
+_MAX_ITER = 60
+# the joint fit's range of the edge's offset and blur and the penumbra's centre (px); a
+# penumbra whose centre or width ends within _AT_END px of its range's end is not one the
+# profile places (2124 #300: centred 12 px under the holder, 667 DN deep: the large-scale
+# shape of the profile), and the fit is not taken
+_Q_RANGE = ((-1.5, 1.5), (0.2, 4.0), (-12.0, 30.0))
+_AT_END = 1e-3
 _MU = np.arange(-6.0, 20.25, 0.5)  # the penumbra's centre, px out from the window's tail
 _SG = np.arange(1.5, 12.25, 0.5)  # its width
 
@@ -449,7 +453,7 @@ def _joint_penumbra(Pw: np.ndarray, xw: np.ndarray, u: np.ndarray, side: int, nu
     width and height trade off and the level it extrapolates to the edge erred by 5 DN
     (corpus). Returns (centre, width, height, the edge's offset from the columns'
     crossings, its blur) or None where the fit fails or holds the penumbra at its least
-    width (``_PINNED``)."""
+    width (``_CRAWL``)."""
     d = (xw[None, :] - u[:, None]).ravel()
     y = Pw.ravel().astype(float)
     # the far side's profile out to the window's tails only: beyond them it holds the
@@ -467,33 +471,9 @@ def _joint_penumbra(Pw: np.ndarray, xw: np.ndarray, u: np.ndarray, side: int, nu
     db_ = (np.bincount(idx, d[ok]) / np.maximum(n, 1))[keep]
     yb = (np.bincount(idx, y[ok]) / np.maximum(n, 1))[keep]
     w = np.sqrt(n[keep])
-    sgn = 1.0 if side else -1.0
-    foot = (wa * wa + wb * wb) / 12.0
     sg_min = _PEN_WIDER * blur
-    wcol = w[:, None]
-    yw = yb * w
-
-    def basis(q: np.ndarray) -> np.ndarray:
-        """The model's columns for the nonlinear (offset, blur, centre, width): the lower
-        level and slope, the step, its slope (with the blur's spread of it, see
-        _fit_tabulated) and the penumbra (with its own spread)."""
-        delta, s_, m, sg = q
-        sd = math.sqrt(s_ * s_ + foot)
-        dn = nu * (db_ - delta)
-        S = ndtr(dn / sd)
-        Qn = np.exp(-0.5 * (dn / sd) ** 2) * (sd * _INV_SQRT_2PI) / nu  # Q(d) / nu
-        zo = (sgn * db_ - m) / sg
-        Z = ndtr(zo)
-        Z1 = sgn * np.exp(-0.5 * zo * zo) * (_INV_SQRT_2PI / sg)  # dZ / dx
-        pen = Z * S + Z1 * Qn if side else Z * (1.0 - S) - Z1 * Qn
-        return np.column_stack([np.ones_like(db_), db_, S, db_ * S + Qn, pen])
-
-    def resid(q: np.ndarray) -> np.ndarray:
-        # (the nonlinear parameters kept in range by a penalty: 'lm' has no bounds)
-        qc = np.array([min(max(float(q[0]), -1.5), 1.5), min(max(float(q[1]), 0.2), 4.0),
-                       min(max(float(q[2]), -12.0), 30.0), min(max(float(q[3]), sg_min), _SG_MAX)])
-        A = basis(qc) * wcol
-        return np.concatenate([A @ _solve(A, yw) - yw, 1e3 * (q - qc)])
+    model = _JointModel(db_, w[:, None], yb * w, side, nu, (wa * wa + wb * wb) / 12.0, sg_min)
+    resid, jac = model.resid, model.jac
 
     def off_the_bound(p: np.ndarray) -> np.ndarray:
         # (the width as the bound plus a logistic of p[3]: a width the data hold near the
@@ -503,16 +483,21 @@ def _joint_penumbra(Pw: np.ndarray, xw: np.ndarray, u: np.ndarray, side: int, nu
     q0 = np.array([0.0, max(blur, 0.3), m0, max(sg0, sg_min)])
     scale = np.array([10.0, 10.0, 1.0, 1.0])
     try:
-        q, _cov, info, _msg, ier = leastsq(resid, q0, full_output=True, maxfev=200,
-                                           diag=scale)
-        if (ier == 5 and q[3] <= sg_min * (1.0 + _CRAWL)
+        q, _cov, info, _msg, ier = leastsq(resid, q0, Dfun=jac, full_output=True,
+                                           maxfev=_MAX_ITER, diag=scale)
+        if (q[3] <= sg_min * (1.0 + _CRAWL)
                 and np.all(np.abs(info["fvec"][-4:-1]) <= 1e-6)):
-            # it crawled along the width's bound until out of evaluations (the penalty
-            # lets a step past the bound only where the cost falls more than the wall
-            # rises): once more from there, the bound written into the width
+            # it ended at the width's bound, converged or out of evaluations (with a
+            # finite-difference Jacobian such a fit crawled along the bound until out
+            # of them: the penalty lets a step past the bound only where the cost falls
+            # more than the wall rises): once more from there, the bound written into
+            # the width
             p0 = np.array([q[0], q[1], q[2], _CRAWL_START])
-            p, _cov, info, _msg, ier = leastsq(lambda p: resid(off_the_bound(p)), p0,
-                                               full_output=True, maxfev=100, diag=scale)
+            p, _cov, info, _msg, ier = leastsq(
+                lambda p: resid(off_the_bound(p)), p0,
+                Dfun=lambda p: jac(off_the_bound(p)) * np.array([1.0, 1.0, 1.0, (
+                    _SG_MAX - sg_min) * expit(p[3]) * (1.0 - expit(p[3]))]),
+                full_output=True, maxfev=_MAX_ITER // 2, diag=scale)
             q = off_the_bound(p)
             if q[3] <= sg_min * (1.0 + _CRAWL):
                 return None  # back at the bound: as narrow as it may be, wherever it lies
@@ -521,14 +506,123 @@ def _joint_penumbra(Pw: np.ndarray, xw: np.ndarray, u: np.ndarray, side: int, nu
     if ier not in (1, 2, 3, 4) or not np.all(np.isfinite(q)) or np.any(
             np.abs(info["fvec"][-4:]) > 1e-6):
         return None
-    if q[3] <= sg_min * (1.0 + _PINNED) and abs(q[2]) < _PINNED_NEAR * q[3]:
-        # held at its narrowest and on the edge: what it fits is the edge's own shape
-        return None
+    if min(abs(q[2] - _Q_RANGE[2][0]), abs(q[2] - _Q_RANGE[2][1]),
+           abs(q[3] - _SG_MAX)) <= _AT_END:
+        return None  # a penumbra as far out or as wide as the range allows
     try:
-        coef = _solve(basis(q) * wcol, yw)
+        coef = _solve(model.basis(q) * model.wcol, model.yw)
     except np.linalg.LinAlgError:
         return None
     return float(q[2]), float(q[3]), float(coef[4]), float(q[0]), float(q[1])
+
+
+@dataclass
+class _JointModel:
+    """:func:`_joint_penumbra`'s model of one side's binned mean profile (the bins'
+    distances ``db`` from the columns' crossings, their weights ``wcol`` (bins, 1), the
+    weighted levels ``yw``): an edge and a penumbra beside it on ``side``, for the
+    nonlinear q = (the edge's offset, its blur, the penumbra's centre and width), the
+    levels by linear least squares; ``nu`` the column's cosine to the edge normal,
+    ``foot`` the pixel footprint's variance across it, ``sg_min`` the penumbra's least
+    width."""
+
+    db: np.ndarray
+    wcol: np.ndarray
+    yw: np.ndarray
+    side: int
+    nu: float
+    foot: float
+    sg_min: float
+    # the last point's fit (see fitted): its q's bytes, A, A'A, the levels, the residuals
+    _key: bytes = field(default=b"", repr=False)
+    _fit: tuple[np.ndarray, ...] = field(default=(), repr=False)
+
+    def basis(self, q: np.ndarray) -> np.ndarray:
+        """The model's columns: the lower level and slope, the step, its slope (with the
+        blur's spread of it, see _fit_tabulated) and the penumbra (with its own spread)."""
+        db_, nu, sgn = self.db, self.nu, 1.0 if self.side else -1.0
+        delta, s_, m, sg = q
+        sd = math.sqrt(s_ * s_ + self.foot)
+        dn = nu * (db_ - delta)
+        S = ndtr(dn / sd)
+        Qn = np.exp(-0.5 * (dn / sd) ** 2) * (sd * _INV_SQRT_2PI) / nu  # Q(d) / nu
+        zo = (sgn * db_ - m) / sg
+        Z = ndtr(zo)
+        Z1 = sgn * np.exp(-0.5 * zo * zo) * (_INV_SQRT_2PI / sg)  # dZ / dx
+        pen = Z * S + Z1 * Qn if self.side else Z * (1.0 - S) - Z1 * Qn
+        return np.column_stack([np.ones_like(db_), db_, S, db_ * S + Qn, pen])
+
+    def derivatives(self, q: np.ndarray) -> np.ndarray:
+        """The step's, its slope's and the penumbra's columns (basis' last three)
+        differentiated by each of q: (bins, 4 (q), 3 (columns))."""
+        db_, nu, sgn = self.db, self.nu, 1.0 if self.side else -1.0
+        delta, s_, m, sg = q
+        sd = math.sqrt(s_ * s_ + self.foot)
+        z = nu * (db_ - delta) / sd
+        ph = np.exp(-0.5 * z * z) * _INV_SQRT_2PI
+        S, Qn = ndtr(z), ph * (sd / nu)
+        zo = (sgn * db_ - m) / sg
+        pho = np.exp(-0.5 * zo * zo) * _INV_SQRT_2PI
+        Z, Z1 = ndtr(zo), sgn * pho / sg
+        # S and Q / nu by the offset and the blur (d sd / d s = s / sd)
+        dS = (-ph * (nu / sd), -ph * z * (s_ / (sd * sd)))
+        dQ = (z * ph, ph * (1.0 + z * z) * (s_ / (sd * nu)))
+        # Z and its slope Z1 by the centre and the width
+        dZ = (-pho / sg, -pho * zo / sg)
+        dZ1 = (sgn * zo * pho / (sg * sg), sgn * pho * (zo * zo - 1.0) / (sg * sg))
+        zero = np.zeros_like(db_)
+        cols = []
+        for k in range(2):
+            cols += [dS[k], db_ * dS[k] + dQ[k], sgn * (Z * dS[k] + Z1 * dQ[k])]
+        for k in range(2):
+            cols += [zero, zero, (dZ[k] * S + dZ1[k] * Qn if self.side
+                                  else dZ[k] * (1.0 - S) - dZ1[k] * Qn)]
+        return np.stack(cols, axis=1).reshape(db_.size, 4, 3)
+
+    def clamped(self, q: np.ndarray) -> np.ndarray:
+        """q within its range ('lm' has no bounds: the residuals hold it there by a
+        penalty)."""
+        (o0, o1), (s0, s1), (m0, m1) = _Q_RANGE
+        return np.array([min(max(float(q[0]), o0), o1), min(max(float(q[1]), s0), s1),
+                         min(max(float(q[2]), m0), m1),
+                         min(max(float(q[3]), self.sg_min), _SG_MAX)])
+
+    def fitted(self, qc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """At q (in range): the weighted columns A, their Gram matrix, the levels and
+        the weighted residuals; the last point's kept (the Jacobian is asked for where
+        the residuals were)."""
+        key = qc.tobytes()
+        if self._key != key:
+            A = self.basis(qc) * self.wcol
+            G = A.T @ A
+            c = np.linalg.solve(G, A.T @ self.yw)
+            self._key, self._fit = key, (A, G, c, A @ c - self.yw)
+        A, G, c, r = self._fit
+        return A, G, c, r
+
+    def resid(self, q: np.ndarray) -> np.ndarray:
+        """The weighted residuals, and the penalty of q beyond its range."""
+        qc = self.clamped(q)
+        return np.concatenate([self.fitted(qc)[3], 1e3 * (q - qc)])
+
+    def jac(self, q: np.ndarray) -> np.ndarray:
+        """The residuals' Jacobian, the linear levels projected out exactly (Golub and
+        Pereyra): with A c the fit, r its residuals and dA a parameter's derivative of A,
+        dr = dA c - A (A'A)^-1 (A' dA c + dA' r). A finite-difference one cost four more
+        evaluations of the residuals an iteration, a quarter of the slowest frames'
+        time."""
+        qc = self.clamped(q)
+        inside = qc == q
+        A, G, c, r = self.fitted(qc)
+        n = r.size
+        dA = (self.derivatives(qc) * self.wcol[:, :, None]).reshape(n, 12)  # A's last 3, by q
+        v = (dA.reshape(n * 4, 3) @ c[2:]).reshape(n, 4)  # dA c, by q
+        t = np.zeros((5, 4))
+        t[2:] = (r @ dA).reshape(4, 3).T  # dA' r, by q
+        J = np.empty((n + 4, 4))
+        J[:n] = (v - A @ np.linalg.solve(G, A.T @ v + t)) * inside
+        J[n:] = np.diag(1e3 * ~inside)
+        return J
 
 
 def _solve(A: np.ndarray, y: np.ndarray) -> np.ndarray:
