@@ -510,7 +510,7 @@ def _joint_penumbra(Pw: np.ndarray, xw: np.ndarray, u: np.ndarray, side: int, nu
            abs(q[3] - _SG_MAX)) <= _AT_END:
         return None  # a penumbra as far out or as wide as the range allows
     try:
-        coef = _solve(model.basis(q) * model.wcol, model.yw)
+        coef = model.fitted(q)[2]  # the levels at the fit's end
     except np.linalg.LinAlgError:
         return None
     return float(q[2]), float(q[3]), float(coef[4]), float(q[0]), float(q[1])
@@ -589,8 +589,9 @@ class _JointModel:
 
     def fitted(self, qc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """At q (in range): the weighted columns A, their Gram matrix, the levels and
-        the weighted residuals; the last point's kept (the Jacobian is asked for where
-        the residuals were)."""
+        the weighted residuals (the levels by the normal equations: a few well-scaled
+        columns, whose small Gram matrix solves at a tenth of an SVD's cost); the last
+        point's kept (the Jacobian is asked for where the residuals were)."""
         key = qc.tobytes()
         if self._key != key:
             A = self.basis(qc) * self.wcol
@@ -623,12 +624,6 @@ class _JointModel:
         J[:n] = (v - A @ np.linalg.solve(G, A.T @ v + t)) * inside
         J[n:] = np.diag(1e3 * ~inside)
         return J
-
-
-def _solve(A: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Least squares by the normal equations (a few well-scaled columns: a solve of
-    their small Gram matrix costs a tenth of an SVD)."""
-    return np.linalg.solve(A.T @ A, A.T @ y)
 
 
 def _start(P: np.ndarray, x: np.ndarray, b1: np.ndarray, b2: np.ndarray
