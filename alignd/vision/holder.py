@@ -1294,9 +1294,8 @@ def _clipped_shares(gray: np.ndarray, sides: list[tuple[Line | None, EdgePoints]
     ys, xs = [], []
     for _ln, pts in sides:
         k = 1 if pts.vertical else 0  # the major axis: x along columns, y along rows
-        t = np.rint(pts.xy[:, k]).astype(np.intp)[:, None]
         c = np.rint(pts.xy[:, 1 - k]).astype(np.intp)[:, None] + j
-        t, c = np.broadcast_arrays(t, c)
+        t = np.rint(pts.xy[:, k]).astype(np.intp)[:, None].repeat(j.size, axis=1)
         ys.append(t if pts.vertical else c)
         xs.append(c if pts.vertical else t)
     v = gray[np.minimum(np.maximum(np.concatenate(ys), 0), h - 1),
