@@ -338,8 +338,8 @@ def _fit_sides(gray: np.ndarray, corners: np.ndarray, half_width: int, margin: f
 
 # the last few crossings undistorted, by identity: each check of a frame's sides reads
 # them in the ideal image (with a lens, about 30 undistortions of 8 sets of crossings a
-# tracked frame, 18 % of its time). EdgePoints are frozen, and an entry holds its own,
-# so no other takes its id while it is remembered
+# tracked frame, 18 % of a lens frame's time). EdgePoints are frozen, and an entry holds
+# its own, so no other takes its id while it is remembered
 _IDEAL: OrderedDict[int, tuple[EdgePoints, Lens, EdgePoints]] = OrderedDict()
 _IDEAL_KEPT = 16
 

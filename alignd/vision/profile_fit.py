@@ -893,7 +893,7 @@ def _corner_clearance(blur: np.ndarray, slope: np.ndarray, nu: np.ndarray, hw: i
 def _line_through(t: np.ndarray, c: np.ndarray) -> tuple[float, float, float]:
     """Least-squares line through a few points: its value at their mean t, its slope and
     that mean t (closed form: np.polyfit's SVD costs 0.1 ms a call)."""
-    tm = float(t.sum()) / t.size  # (the means without np.mean's overhead: as many calls)
+    tm = float(t.sum()) / t.size  # (np.mean's own sum and division, without its overhead)
     d = t - tm
     b = float(d @ c) / max(float(d @ d), 1e-12)
     return float(c.sum()) / c.size, b, tm
