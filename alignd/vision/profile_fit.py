@@ -118,7 +118,7 @@ def step_response(d: np.ndarray, s: float | np.ndarray, wa: float | np.ndarray,
     # the four corners of the trapezoid at once (a leading axis), signs +, -, -, +; written
     # in place (the arrays are small: numpy's per-call cost is most of this function's)
     d = np.asarray(d, float)
-    t = np.empty((4, *np.broadcast_shapes(d.shape, np.shape(s), np.shape(p))))
+    t = np.empty((4, *np.broadcast(d, s, p).shape))  # (np.broadcast_shapes: 4x the cost)
     np.add(d, p, out=t[0])
     np.add(d, q, out=t[1])
     np.subtract(d, q, out=t[2])
