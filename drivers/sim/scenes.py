@@ -688,16 +688,18 @@ def soft_band_scene(width_px: float, shadow_blur_px: float, angle_deg: float,
     return _drawn_8bit(img, blur_px, 1.0, seed), held
 
 
-def disc_kernel(radius_px: float, sub: int = 16) -> np.ndarray:
+def disc_kernel(radius_px: float, sub: int = 16, across: int = 1) -> np.ndarray:
     """A lens' defocus: a uniform disc of ``radius_px``, each pixel's weight the share of
-    ``sub`` x ``sub`` points within it that fall in the disc (normalised to 1)."""
-    n = math.ceil(radius_px)
+    ``sub`` x ``sub`` points within it that fall in the disc (normalised to 1). ``across``:
+    the image's sub-columns per pixel (a side scene is drawn at :data:`_SIDE_SS`): the
+    disc is then that many times as wide in its columns."""
+    n, m = math.ceil(radius_px), math.ceil(radius_px * across)
     off = (np.arange(sub) + 0.5) / sub - 0.5
-    k = np.zeros((2 * n + 1, 2 * n + 1))
+    k = np.zeros((2 * n + 1, 2 * m + 1))
     for i in range(-n, n + 1):
-        for j in range(-n, n + 1):
-            yy, xx = np.meshgrid(i + off, j + off, indexing="ij")
-            k[i + n, j + n] = np.count_nonzero(xx * xx + yy * yy <= radius_px * radius_px)
+        for j in range(-m, m + 1):
+            yy, xx = np.meshgrid(i + off, (j + off) / across, indexing="ij")
+            k[i + n, j + m] = np.count_nonzero(xx * xx + yy * yy <= radius_px * radius_px)
     return (k / k.sum()).astype(np.float32)
 
 
@@ -949,7 +951,8 @@ def _polished_pole(rng: np.random.Generator, shape: tuple[int, int], ss: int,
 
 def random_side_scene(rng: np.random.Generator, category: str | None = None,
                       size_px: tuple[int, int] = (1280, 720), frames: int = 1,
-                      gamma: ToneCurve = 1.0, polished: bool = False) -> SideSceneSample:
+                      gamma: ToneCurve = 1.0, polished: bool = False,
+                      defocus: Defocus = "gaussian") -> SideSceneSample:
     """One randomised side-camera view (see the module docstring); ``frames`` > 1 adds
     further frames of the same view with independent noise, as a camera streams them
     (``SideSceneSample.frames``). ``gamma``: the camera's tone curve, applied before the
@@ -957,7 +960,9 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     polished metal rod, as the thesis' was: a cylinder's shading across it and a specular
     highlight along it, anywhere across it (:func:`_polished_pole`; its draws come from a
     generator of its own, so the view's geometry, levels and first frame are, outside the
-    pole, those drawn without it; its further frames' noise differs)."""
+    pole, those drawn without it; its further frames' noise differs). ``defocus``: the
+    blur's shape, a Gaussian of the drawn blur or a lens out of focus, a disc of twice
+    that radius (the same draws, so the same views)."""
     cat = str(category or SIDE_CATEGORIES[int(rng.integers(len(SIDE_CATEGORIES)))])
     w, h = size_px
     enc = Encoding(8, False, int(rng.integers(60, 96))) if cat == "jpeg" else (
@@ -1065,8 +1070,12 @@ def random_side_scene(rng: np.random.Generator, category: str | None = None,
     params.update(info)
     img *= _stretch(light, ss)
     blur = float(rng.uniform(0.4, 1.5))
-    img = cv2.GaussianBlur(img, (0, 0), sigmaX=blur * ss, sigmaY=blur,
+    if defocus == "disc":
+        img = cv2.filter2D(img, -1, disc_kernel(2.0 * blur, across=ss),
                            borderType=cv2.BORDER_REFLECT)
+    else:
+        img = cv2.GaussianBlur(img, (0, 0), sigmaX=blur * ss, sigmaY=blur,
+                               borderType=cv2.BORDER_REFLECT)
     img = img.reshape(h, w, ss).mean(axis=2)
     params["blur_px"] = blur
     noise = {"read_noise": float(rng.uniform(0.5, 2.0)),
