@@ -89,7 +89,7 @@ class ProfileFit:
                     contrast=self.contrast)
 
 
-Spread = Literal["optics", "pixel grid"]
+Spread = Literal["optics", "disc", "pixel grid"]
 _K = np.arange(-8, 9, dtype=np.float64)  # taps of a blur on the pixel grid (4 sigma at 2 px)
 
 
@@ -98,16 +98,26 @@ def step_basis(u: np.ndarray, s: float, spread: Spread = "optics"
     """The step profile F (minus 1/2) at offset u, dF/du, dF/ds, and the per-row basis
     [1, u, F, u F] (N, W, 4).
 
-    "optics": a Gaussian blur of width s before the pixels integrate (a lens); "pixel grid":
-    the pixel-integrated step blurred by a sampled Gaussian kernel afterwards (a filter in
-    the camera's processing, or a renderer), whose shape depends on the sub-pixel phase.
+    "optics": a Gaussian blur of width s before the pixels integrate (a lens); "disc": a
+    uniform disc of radius s before they integrate (a lens out of focus: its edge ends
+    abruptly a radius out, where a Gaussian's tails go on); "pixel grid": the
+    pixel-integrated step blurred by a sampled Gaussian kernel afterwards (a filter in the
+    camera's processing, or a renderer), whose shape depends on the sub-pixel phase.
+
+    A lens's step is s times the difference of its blurred step's antiderivative A over
+    the pixel's width: F = s (A(t+) - A(t-)) - 1/2 at t = (u +- 1/2) / s, so dF/du =
+    A'(t+) - A'(t-) and dF/ds = (A - t A')(t+) - (A - t A')(t-).
     """
     if spread == "optics":
         tp, tm = (u + 0.5) / s, (u - 0.5) / s
         cp, cm = ndtr(tp), ndtr(tm)
         pp, pm = _INV_SQRT_2PI * np.exp(-0.5 * tp * tp), _INV_SQRT_2PI * np.exp(-0.5 * tm * tm)
-        F = s * (tp * cp + pp - tm * cm - pm) - 0.5
+        F = s * (tp * cp + pp - tm * cm - pm) - 0.5  # (A = t Phi(t) + phi(t))
         dFu, dFs = cp - cm, pp - pm
+    elif spread == "disc":
+        (ap, ep, bp), (am, em, bm) = _disc_step((u + 0.5) / s), _disc_step((u - 0.5) / s)
+        F = s * (ap - am) - 0.5
+        dFu, dFs = ep - em, bp - bm
     else:
         e = np.exp(-0.5 * (_K / s) ** 2)
         de = e * _K ** 2 / s ** 3
@@ -120,6 +130,19 @@ def step_basis(u: np.ndarray, s: float, spread: Spread = "optics"
         dFs = ramp @ dg
     B = np.stack([np.ones_like(u), u, F, u * F], axis=2)
     return F, dFu, dFs, B
+
+
+def _disc_step(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A disc-blurred unit step at ``t`` radii from the edge (the share of the disc beyond
+    a chord there, E = 1/2 + (t sqrt(1 - t^2) + asin t) / pi), its antiderivative A and
+    A - t E (:func:`step_basis`): A = t / 2 + (t asin t + sqrt(1 - t^2) - (1 - t^2)^(3/2)
+    / 3) / pi within the disc, 0 before it and t beyond."""
+    z = np.clip(t, -1.0, 1.0)
+    root = np.sqrt(1.0 - z * z)
+    asin = np.arcsin(z)
+    E = 0.5 + (z * root + asin) / math.pi
+    A = 0.5 * z + (z * asin + root - root ** 3 / 3.0) / math.pi + np.maximum(t - 1.0, 0.0)
+    return A, E, A - t * E
 
 
 def solve_rows(B: np.ndarray, Y: np.ndarray) -> np.ndarray:
