@@ -62,3 +62,27 @@ def test_frame_size_option(bench: ModuleType) -> None:
             bench._frame_size(bad)
     _rows, summary = bench.corpus_top(2, 2124, (640, 480))
     assert summary["n"] == 2 and summary["found"] == 1.0
+
+
+def test_side_disc_rows_draw_the_views_through_a_lens_out_of_focus(
+        bench: ModuleType, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The side corpus again, each view blurred by a disc (a lens out of focus): its rows
+    name the disc and score the pre-check against the same 0.002 deg target, and the
+    edges measured take the disc model."""
+    rows = bench.side_disc_corpus(2, 2224, frames=3, u_target=None)
+    names = [r[0] for r in rows]
+    assert names[0] == "side, defocused by a disc (2 views), regions: found (%)"
+    assert any("tilt max error, pre-check (3 frames)" in n and r[2] == "<= 0.002"
+               for n, r in zip(names, rows, strict=True))
+    assert rows[0][1] == "100.00" and rows[0][3] is True
+    seen: list[object] = []
+    real = bench.measure_tilt_frames
+
+    def spy(*args: object, **kwargs: object) -> object:
+        av = real(*args, **kwargs)
+        seen.extend(e.spread for f in av.frames for e in (*f.sample_edges, *f.pole_edges))
+        return av
+
+    monkeypatch.setattr(bench, "measure_tilt_frames", spy)
+    bench.side_disc_corpus(1, 2224, frames=2, u_target=None)
+    assert seen and set(seen) == {"disc"}
