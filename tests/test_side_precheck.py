@@ -276,6 +276,29 @@ def test_jpeg_quality_is_found_and_raw_frames_are_not_taken_for_jpeg() -> None:
         assert jpeg_quality(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)) == q
 
 
+def test_the_frames_jpeg_quality_is_read_once_on_the_frame_as_it_came(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The first frame's measurement carries the quality it read (coding a crop 60 times,
+    about 16 ms a view), and the bias step uses it; a frame linearised first (a tone
+    curve) is float, so there the quality is read on the frame as the camera sent it."""
+    sc = random_side_scene(np.random.default_rng(6), "jpeg", frames=3)
+    rois = {"pole_roi_px": sc.pole_roi_px, "sample_roi_px": sc.sample_roi_px}
+    first = side.measure_tilt(sc.frames[0], **rois)
+    assert first.coded_quality == sc.encoding.jpeg_quality
+    raw = random_side_scene(np.random.default_rng(6), "full-height sample", frames=1)
+    assert side.measure_tilt(raw.frames[0]).coded_quality is None
+    reads: list[int | None] = []
+
+    def counted(image: np.ndarray, m: side.SideMeasurement) -> int | None:
+        reads.append(q := side._coded_near(image, m.sample_edges[0]))
+        return q
+    monkeypatch.setattr(side, "_coded_quality", counted)
+    av = measure_tilt_frames(list(sc.frames), **rois)
+    assert reads == [] and av.jpeg_quality == sc.encoding.jpeg_quality
+    av = measure_tilt_frames(list(sc.frames), **rois, gamma=1.2)
+    assert reads == [sc.encoding.jpeg_quality] and av.jpeg_quality == sc.encoding.jpeg_quality
+
+
 @pytest.mark.parametrize("seed", [6, 38])
 def test_jpeg_coding_bias_is_taken_off_the_pre_check(seed: int) -> None:
     """JPEG's coding error along a near-vertical edge follows the edge's phase in its block

@@ -88,6 +88,9 @@ class SideMeasurement:
     mode: str = "auto"  # "roi": found in the configured regions; "auto": found unaided
     rois: tuple[tuple[int, int, int, int] | None, tuple[int, int, int, int] | None] = (None,
                                                                                       None)
+    # the libjpeg quality the frame was coded at, as measure_tilt read it (None: not coded,
+    # or not read); measure_tilt_frames' bias step uses it rather than reading it again
+    coded_quality: int | None = None
 
     def to_json(self) -> dict[str, object]:
         return {"sample_angle_deg": self.sample_angle_deg, "pole_angle_deg": self.pole_angle_deg,
@@ -724,14 +727,16 @@ def measure_tilt(image: np.ndarray, *, pole_roi_px: tuple[int, int, int, int] | 
             main, rest = _auto_sample(edges, pole, h, sample_x_px, max_edge_rms_px)
     sample = _partner(main, rest)
     others = [*edges, *seen, *pole, *sample]
+    quality = _coded_near(raw, sample[0])
     joint = _one_spread(gray, pole, sample, others, pole_roi_px, sample_roi_px,
-                        coded=_coded_near(raw, sample[0]) is not None)
+                        coded=quality is not None)
     if joint is not None:
         pole, sample = joint
     else:
         pole = _each_profiled(gray, pole, others, pole_roi_px, None, "pole")
         sample = _each_profiled(gray, sample, others, sample_roi_px, False, "sample")
-    return _measurement(sample, pole, mode, (pole_roi_px, sample_roi_px))
+    return replace(_measurement(sample, pole, mode, (pole_roi_px, sample_roi_px)),
+                   coded_quality=quality)
 
 
 # an edge whose rows are clipped (a pixel at black or full scale beside it) in more than
@@ -955,9 +960,10 @@ def measure_tilt_frames(images: list[np.ndarray], *,
     images = list(images)
     first = measure_tilt(linearise(images[0], gamma), pole_roi_px=pole_roi_px,
                          sample_roi_px=sample_roi_px)
-    # the frames' JPEG quality (None: not coded), read once for the bias step
-    quality = (_coded_quality(images[0], first) if len(images) >= 3 or more is not None
-               else None)
+    # the frames' JPEG quality (None: not coded) for the bias step: measure_tilt read it on
+    # the frame as it came, unless that frame was linearised first (a float frame)
+    quality = ((first.coded_quality if is_linear(gamma) else _coded_quality(images[0], first))
+               if len(images) >= 3 or more is not None else None)
     if quality is not None and not is_linear(gamma):
         gamma = 1.0
         first = measure_tilt(images[0], pole_roi_px=pole_roi_px, sample_roi_px=sample_roi_px)
