@@ -41,7 +41,7 @@ import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
@@ -78,6 +78,9 @@ class SweepResult:
     inside_95: bool = False
     z: float = math.nan  # the centre's error over its stated uncertainty, sqrt(chi2 / 2)
     note: str = ""
+    # each frame's tracking time (s, process time) where the previous frame's detection
+    # seeded it (the sweep's first frame, and a frame after a lost one, search in full)
+    track_s: list[float] = field(default_factory=list)
 
 
 def _axis(corners_px: np.ndarray, lens: Lens | None, px_um: float,
@@ -108,12 +111,18 @@ def run_sweep(seed: int, index: int, size_px: tuple[int, int],
         return None
     points = np.full((len(frames), 4, 2), np.nan)
     last: HolderDetection | None = None
+    track_s: list[float] = []
     for k, f in enumerate(frames):
+        seeded = last is not None and k > 0 and np.all(np.isfinite(points[k - 1]))
+        t0 = time.process_time()
         try:  # as alignd.procedures.tools.track: no lens, the last detection as the seed
             det = track_holder(f.image, expected_size_px=f.expected_size_px, hint=last,
                                lens=lens if use_lens else None)
         except VisionError:
             continue
+        finally:
+            if seeded:
+                track_s.append(time.process_time() - t0)
         if det.ok:
             last = det
             points[k] = order_corners(det.corners_px)
@@ -132,7 +141,8 @@ def run_sweep(seed: int, index: int, size_px: tuple[int, int],
     errs = [float(e) for k in np.flatnonzero(ok) for e in np.linalg.norm(
         points[k] - order_corners(truth[k], points[k]), axis=1)]
     wrong = sum(max(errs[4 * j:4 * j + 4]) > 1.0 for j in range(len(errs) // 4))
-    res = SweepResult(cat, len(frames), int(ok.sum()), errs, False, wrong=wrong)
+    res = SweepResult(cat, len(frames), int(ok.sum()), errs, False, wrong=wrong,
+                      track_s=track_s)
     if ok.sum() < 3 or not ok[k0]:
         res.note = f"tracked {int(ok.sum())} of {len(frames)} frames"
         return res
@@ -214,6 +224,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = [_row(cat, [r for r in results if r.category == cat]) for cat in TOP_CATEGORIES]
     rows.append(_row("total", results))
     print_table(head, rows)
+    track = np.array([t for r in results for t in r.track_s])
+    if track.size:
+        print(f"\ntracking in a sweep (each frame seeded with the previous one's detection, "
+              f"the holder turned {angles[1] - angles[0]:.3g} deg between them; "
+              f"{track.size} frames, 1 core, process time): mean {1e3 * track.mean():.1f} "
+              f"ms, p95 {1e3 * np.percentile(track, 95):.1f} ms, "
+              f"{1 / track.mean():.0f} frames/s (bench/vision.py's tracking row tracks each "
+              f"frame again from its own detection, the best case)")
     solved = [r for r in results if r.solved]
     worst = max((r.centre_err_um for r in solved), default=math.nan)
     print(f"\ncentre error max {worst:.1f} um against the thesis' repeatability "
