@@ -60,6 +60,28 @@ def test_a_holder_that_moved_gets_the_coarse_search(
                                full.corners_px, atol=0.05)
 
 
+def test_a_holder_that_moved_far_is_located_again_and_measured_once(
+        scene: TopSceneSample, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A sweep's step moves the holder by several px: its sides are located again around
+    where the +-10 px search found them (the fine windows re-centred), and only then
+    measured by the profile fit, once (measured on the off-centre windows too, a sweep's
+    tracked frame took twice as long)."""
+    full = track_holder(scene.image, expected_size_px=scene.expected_size_px)
+    calls = _count_coarse(monkeypatch)
+    finished = [0]
+    real = holder._finish
+
+    def counted(*args: object, **kwargs: object) -> holder.HolderDetection:
+        finished[0] += 1
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+    monkeypatch.setattr(holder, "_finish", counted)
+    moved = track_holder(scene.image, expected_size_px=scene.expected_size_px,
+                         hint=full.corners_px + np.array([5.0, -4.0]))
+    assert moved.ok and calls[0] == 2 and finished[0] == 1
+    np.testing.assert_allclose(order_corners(moved.corners_px, full.corners_px),
+                               full.corners_px, atol=0.05)
+
+
 def test_a_slight_lens_is_tracked_on_the_previous_sides(
         scene: TopSceneSample, monkeypatch: pytest.MonkeyPatch) -> None:
     """Sides that bow by a fraction of a pixel stay inside windows on their chords: the

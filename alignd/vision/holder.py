@@ -29,6 +29,7 @@ shadow's) is moved in to the inner one, the holder's edge
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from collections import OrderedDict
@@ -460,18 +461,6 @@ def track_holder(image: np.ndarray, expected_size_px: tuple[float, float] | None
             det = _refine(gray, seed, polarity, expected_size_px, hint_arr, track_contrast,
                           max_rms_px, passes, lens, size_tolerance, refine == "profile",
                           seeded=True, prior=prior, neighbours=neighbours)
-            if det.ok and np.max(np.linalg.norm(order_corners(det.corners_px) - seed,
-                                                axis=1)) > _RESEED_PX:
-                # the holder moved far within the +-10 px side search (a wide sweep's
-                # steps): the fine windows sat off-centre and could straddle a nearby
-                # edge (a sample strip along a side), skewing a side by up to 2 px at a
-                # corner; measure again around what was found
-                again = _refine(gray, order_corners(det.corners_px), polarity,
-                                expected_size_px, hint_arr, track_contrast, max_rms_px, passes,
-                                lens, size_tolerance, refine == "profile",
-                                neighbours=neighbours)
-                if again.ok:
-                    det = again
             if det.ok and (prior is None or _shift(order_corners(det.corners_px, prior.corners),
                                                     prior.corners) > 1.0):
                 # (a holder within a pixel of the previous detection's corners has its
@@ -857,6 +846,14 @@ def _refine(gray: np.ndarray, corners: np.ndarray, polarity: str | None,
         # sides' windows: as the coarse search places them (its corners, then the area
         # method's own; soft sides through a lens, seed 177 #353: 0.15 px off, 0.02 so)
     at, sides = _locate(gray, corners, min_contrast, passes, lens)
+    if seeded and _shift(at, corners) > _RESEED_PX:
+        # the holder moved far within the +-10 px side search (a sweep's 2 deg steps): the
+        # fine windows sat off-centre and could straddle a nearby edge (a sample strip
+        # along a side), skewing a side by up to 2 px at a corner; located again around
+        # what was found, before the profile fit (once, not on both: a sweep's tracked
+        # frame took 75 ms with the whole measurement made twice)
+        with contextlib.suppress(VisionError):
+            at, sides = _locate(gray, at, min_contrast, passes, lens)
     if blur is not None:
         blur = blur[_side_match(corners, at)]
     return _finish(gray, at, sides, polarity, expected_size_px, hint, min_contrast,
