@@ -79,7 +79,8 @@ class SweepResult:
     z: float = math.nan  # the centre's error over its stated uncertainty, sqrt(chi2 / 2)
     note: str = ""
     # each frame's tracking time (s, process time) where the previous frame's detection
-    # seeded it (the sweep's first frame, and a frame after a lost one, search in full)
+    # seeded it (not timed: the sweep's first frame, a full search, and a frame after a
+    # lost one, seeded from further back)
     track_s: list[float] = field(default_factory=list)
 
 
