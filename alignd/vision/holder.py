@@ -145,7 +145,7 @@ _BLUR_ALIKE_MIN_PX = 1.0
 # as the coarse search's best-fit line would (corpus lens frames: 90 % bow under 0.7 px;
 # #111 of seed 2124, 1.6 px, misfitted on the chord and fell back to the area method)
 _SEED_SAGITTA_PX = 1.0
-_RESEED_PX = 3.0  # a tracked holder that moved more than this is measured once more
+_RESEED_PX = 3.0  # a tracked holder that moved more than this is located again (see _refine)
 # tracking despeckles the frame this far around the previous corners: the side search's 10
 # px, the edge windows and the profiles read beside a side (21.5 px in, 14 out) within it
 _SPECK_MARGIN_PX = 40
