@@ -29,6 +29,12 @@ the pixel rows samples its profile once a pixel, and there a blur not quite Gaus
 two steps about 1 px apart far better than one: such a side must also misfit one step by
 more than a blur's shape can. A band narrower than about 1 px is not resolved from the
 edge's own blur and still moves the side by up to half a pixel.
+
+A soft band (a cast shadow 1-3 px beyond a side, its edge blurred by the lamp's penumbra
+as well as the lens) lies about one blur from the edge: two steps of one blur do not
+resolve it. Where no band is found so, a side fitted softer than the other three is
+fitted again with its inner step held at their blur (one lens blurs the flat face's four
+sides alike) and its outer step at least as soft (:func:`_soft_bands`).
 """
 
 from __future__ import annotations
@@ -230,23 +236,33 @@ def steps_model(P: np.ndarray, x: np.ndarray, foot: np.ndarray, steps: int,
 
 
 def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: np.ndarray,
-              steps: int, iterations: int = 40, reach: float = REACH, own_blur: bool = False
+              steps: int, iterations: int = 40, reach: float = REACH, own_blur: bool = False,
+              held_blur: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt for many profiles at once (rows of ``P``; ``x``, ``m`` the
     profiles, ``w`` their weights, ``foot`` the pixels' footprints; the steps kept within
-    ``reach`` - 0.5 px of the side; ``own_blur``: see :func:`_model`): the parameters, the
-    weighted residual sums of squares and the normal matrices at the end."""
+    ``reach`` - 0.5 px of the side; ``own_blur``: see :func:`steps_model`): the
+    parameters, the weighted residual sums of squares and the normal matrices at the end.
+    ``held_blur`` (one a row): the shared blur held there, and with ``own_blur`` the last
+    step's kept at least as wide (an edge of a known blur with a softer step beside it)."""
     P = P.copy()
     lam = np.full(len(P), 1e-3)
     f, J = steps_model(P, x, foot, steps, own_blur)
     cost = np.sum(w * (m - f) ** 2, axis=1)
     eye = np.eye(P.shape[1])[None]
-    # the bounds: the blurs within 0.2-4 px, the steps within reach
-    lo, hi = np.full(P.shape[1], -np.inf), np.full(P.shape[1], np.inf)
-    lo[2], hi[2] = 0.2, _MAX_BLUR
+    # the bounds (one row a profile): the blurs within 0.2-4 px, the steps within reach
+    lo, hi = np.full(P.shape, -np.inf), np.full(P.shape, np.inf)
+    lo[:, 2], hi[:, 2] = 0.2, _MAX_BLUR
     if own_blur:
-        lo[-1], hi[-1] = 0.2, _MAX_BLUR
-    lo[4::2], hi[4::2] = -reach + 0.5, reach - 0.5
+        lo[:, -1], hi[:, -1] = 0.2, _MAX_BLUR
+    if held_blur is not None:
+        lo[:, 2] = hi[:, 2] = P[:, 2] = held_blur
+        if own_blur:
+            lo[:, -1] = held_blur
+            P[:, -1] = np.clip(P[:, -1], lo[:, -1], hi[:, -1])
+        f, J = steps_model(P, x, foot, steps, own_blur)
+        cost = np.sum(w * (m - f) ** 2, axis=1)
+    lo[:, 4::2], hi[:, 4::2] = -reach + 0.5, reach - 0.5
     live = np.ones(len(P), bool)  # rows still improving
     for _ in range(iterations):
         b = np.flatnonzero(live)
@@ -258,7 +274,7 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
         # a parameter at its bound that the descent pushes beyond it is held there (an
         # active set): clipped after every step instead, it crawled along the bound and
         # took all the iterations (a sharp side's blur at 0.2 px)
-        held = ((P[b] <= lo) & (g < 0)) | ((P[b] >= hi) & (g > 0))
+        held = ((P[b] <= lo[b]) & (g < 0)) | ((P[b] >= hi[b]) & (g > 0))
         if held.any():
             free = ~held
             A = A * (free[:, :, None] & free[:, None, :]) + held[:, :, None] * eye
@@ -269,7 +285,7 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
                                    g[..., None])[..., 0]
         except np.linalg.LinAlgError:
             break
-        Q = np.clip(P[b] + step, lo, hi)
+        Q = np.clip(P[b] + step, lo[b], hi[b])
         fq, Jq = steps_model(Q, x[b], foot[b], steps, own_blur)
         cq = np.sum(w[b] * (m[b] - fq) ** 2, axis=1)
         better = cq < cost[b]
@@ -445,6 +461,82 @@ def _softer_outer(p: np.ndarray, cost: float, x: np.ndarray, m: np.ndarray,
     return d_in, math.sqrt(max(var, 0.0))
 
 
+# a soft band (docs/vision.md, "A soft band"): a side fitted _SOFT_WIDER px or more softer
+# than the camera's blur (the other sides' median) is fitted with two steps, the inner one
+# at that blur and the outer one at least as soft, from the _SOFT_SEPS x _SOFT_SPLITS
+# starts; the band is taken where they fit _SOFT_GAIN times better than one step, each the
+# same way and together the side's whole step, the smaller at least _MIN_SHARE_CLEAR of
+# both, _MIN_SEP px or more apart, the inner one _MIN_OFF_SOFT to _SOFT_MAX_IN px inside
+# the found side
+_SOFT_WIDER = 0.05
+_SOFT_GAIN = 2.0
+_SOFT_SEPS, _SOFT_SPLITS = (1.5, 3.0), (0.0, 0.5)
+_MIN_OFF_SOFT, _SOFT_MAX_IN = 0.05, 1.5
+
+
+def _soft_bands(prof: SideProfiles, P1: np.ndarray, cost1: np.ndarray, usable: np.ndarray,
+                within: np.ndarray) -> list[Band]:
+    """The sides beside a soft band: a cast shadow 1-3 px beyond a side, its edge softer
+    than the holder's (the camera's blur and the lamp's penumbra), too near to resolve as
+    two steps of one blur (:func:`side_bands`). One lens blurs all four sides of the flat
+    face alike, so the other sides tell the holder's edge's blur: held at that, the inner
+    step is the edge and the outer one the band's (corpus frames whose side was 0.4-0.5
+    px outside the holder's edge: 0.1 px). ``P1``, ``cost1``: the one-step fits of
+    ``prof`` (clipped bins left out), ``usable``: sides with enough pixels, ``within``:
+    the pixels' scatter within the bins. A band along opposite sides, or at the level of
+    the face just inside the opposite side, is left alone (see :func:`side_bands`)."""
+    live = np.flatnonzero(usable)
+    if live.size < 3:
+        return []
+    blur = P1[:, 2]
+    cam = np.array([float(np.median(blur[live[live != k]])) for k in range(4)])
+    todo = np.array([k for k in live if blur[k] >= cam[k] + _SOFT_WIDER], int)
+    if todo.size == 0:
+        return []
+    x, m, foot = prof.x, prof.m, prof.foot
+    cnt = np.where(prof.clipped > 0, 0.0, prof.cnt)
+    starts = [(sep, split) for sep in _SOFT_SEPS for split in _SOFT_SPLITS]
+    P2 = np.array([[a, g, cam[k], 0.7 * cc, d - split * sep, 0.3 * cc,
+                    d - split * sep + sep, 1.3 * cam[k]]
+                   for k in todo for (a, g, _s, cc, d) in P1[k:k + 1]
+                   for sep, split in starts])
+    rows = np.repeat(todo, len(starts))
+    P2, cost2, _ = fit_steps(P2, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5,
+                             own_blur=True, held_blur=cam[rows])
+    best = [int(np.flatnonzero(rows == k)[np.argmin(cost2[rows == k])]) for k in todo]
+    P2, cost2, A2 = fit_steps(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2,
+                              own_blur=True, held_blur=cam[todo])
+    bands = []
+    for b, k in enumerate(todo):
+        a, g, _s, c1, d1, c2, d2, _s2 = (float(v) for v in P2[b])
+        c0 = float(P1[k, 3])
+        share = min(abs(c1), abs(c2)) / max(abs(c1) + abs(c2), 1e-9)
+        gain = float(cost1[k] / max(cost2[b], 1e-12))
+        if not (gain >= _SOFT_GAIN and c1 * c2 > 0 and c0 != 0
+                and abs((c1 + c2) / c0 - 1.0) <= _WHOLE and share >= _MIN_SHARE_CLEAR
+                and d2 - d1 >= _MIN_SEP and -_SOFT_MAX_IN <= d1 <= -_MIN_OFF_SOFT
+                and _resolvable(x[k], m[k] - steps_model(P1[k:k + 1], x[k:k + 1],
+                                                         foot[k:k + 1], 1)[0][0],
+                                cnt[k], d1, d2, foot[k], c0)):
+            continue
+        # the inner step's standard error, as a hard band's (the blur held: the other 7
+        # parameters' normal matrix)
+        var_px = (float(cost2[b]) + within[k]) / max(float(cnt[k].sum()) - 7.0, 1.0)
+        free = [0, 1, 3, 4, 5, 6, 7]
+        try:
+            sigma = math.sqrt(max(float(np.linalg.inv(A2[b][np.ix_(free, free)])[3, 3])
+                                  * var_px, 0.0))
+        except np.linalg.LinAlgError:
+            sigma = math.inf
+        bands.append(Band(int(k), d1, d2, share, gain, sigma,
+                          band_levels(a, g, d1, d2, c1)))
+    if any((bd.side + 2) % 4 in {o.side for o in bands} for bd in bands):
+        return []
+    if any(plate_rim(prof, bd.side, bd.levels) for bd in bands):
+        return []
+    return bands
+
+
 _SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, ...
 _SPLITS = (0.0, 0.5, 1.0)  # ... the one step's place at the inner, middle, outer one
 
@@ -489,8 +581,6 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
     misfit = cost1 / np.maximum(cnt.sum(axis=1) * P1[:, 3] ** 2, 1e-12)
     usable_any = usable.copy()
     usable &= misfit >= _WORSE * float(np.min(misfit[usable]))
-    if not usable.any():
-        return []
     deep: SideProfiles | None = None
 
     def examine(todo: np.ndarray) -> tuple[list[Band], set[int]]:
@@ -554,7 +644,11 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
                               sigma, levels))
         return bands, twice
 
+    if not usable.any():
+        return _soft_bands(prof, P1, cost1, usable_any, within)
     bands, twice = examine(np.flatnonzero(usable))
+    if not bands:
+        return _soft_bands(prof, P1, cost1, usable_any, within)
     # a band along opposite sides lies inside the face (a plate, a chamfer all round): left
     # alone whether or not the found side passed as beside it there too (a dark plate 4 px
     # inside both long sides: the found sides 0.45 and 0.53 px outside the outer steps, one
