@@ -470,6 +470,7 @@ def _softer_outer(p: np.ndarray, cost: float, x: np.ndarray, m: np.ndarray,
 # the found side
 _SOFT_WIDER = 0.05
 _SOFT_GAIN = 2.0
+_SOFT_MISFIT = 1.5  # ... tried only where one step misfits beyond the noise this much
 _SOFT_SEPS, _SOFT_SPLITS = (1.5, 3.0), (0.0, 0.5)
 _MIN_OFF_SOFT, _SOFT_MAX_IN = 0.05, 1.5
 
@@ -490,11 +491,17 @@ def _soft_bands(prof: SideProfiles, P1: np.ndarray, cost1: np.ndarray, usable: n
         return []
     blur = P1[:, 2]
     cam = np.array([float(np.median(blur[live[live != k]])) for k in range(4)])
-    todo = np.array([k for k in live if blur[k] >= cam[k] + _SOFT_WIDER], int)
-    if todo.size == 0:
-        return []
     x, m, foot = prof.x, prof.m, prof.foot
     cnt = np.where(prof.clipped > 0, 0.0, prof.cnt)
+    # only a side one step misfits beyond its noise can fit two steps _SOFT_GAIN times
+    # better: its residual sum over what the pixels' scatter within the bins gives
+    # (a fit costs about 5 ms a side)
+    bins = np.count_nonzero(cnt > 0, axis=1)
+    noise = within / np.maximum(cnt.sum(axis=1) - bins, 1.0) * np.maximum(bins - 8, 1)
+    todo = np.array([k for k in live if blur[k] >= cam[k] + _SOFT_WIDER
+                     and cost1[k] >= _SOFT_MISFIT * noise[k]], int)
+    if todo.size == 0:
+        return []
     starts = [(sep, split) for sep in _SOFT_SEPS for split in _SOFT_SPLITS]
     P2 = np.array([[a, g, cam[k], 0.7 * cc, d - split * sep, 0.3 * cc,
                     d - split * sep + sep, 1.3 * cam[k]]
