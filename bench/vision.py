@@ -490,8 +490,12 @@ RIM_E_STD = 0.001  # a third of the 0.003 bound: a fit less certain than this sa
 RIM_FRAMES = PrecheckConfig().rim_frames  # the rim pre-check's default frame count
 
 
+RIM_PULL_LISTED = 3.0  # a certain fit off by more than this many u is listed
+
+
 def _rim_score(d: dict[str, list[float]], f: RimFit, truth: float, label: str) -> None:
-    """One fit into its category's lists; an uncertain fit is listed under the tables."""
+    """One fit into its category's lists; an uncertain fit is listed under the tables, and
+    so is a certain one off by more than ``RIM_PULL_LISTED`` of its uncertainty."""
     d["found"].append(1)
     err = f.eccentricity - truth
     d["err_all"].append(err)
@@ -503,6 +507,11 @@ def _rim_score(d: dict[str, list[float]], f: RimFit, truth: float, label: str) -
         return
     d["err"].append(err)
     d["pull"].append(abs(err) / f.eccentricity_std)
+    if abs(err) > RIM_PULL_LISTED * f.eccentricity_std:
+        # certain, and wrong by more than its uncertainty allows: listed as well
+        log_line(f"{label}: certain but {abs(err) / f.eccentricity_std:.1f} u off, e "
+                 f"{f.eccentricity:.4f} +- {f.eccentricity_std:.4f} (true {truth:.4f}, "
+                 f"error {err:+.4f})")
 
 
 def _rim_table(per: dict[str, dict[str, list[float]]], tag: str
@@ -543,7 +552,8 @@ def corpus_rim(n: int, seed: int, frames: int = RIM_FRAMES, turn_deg: float = 0.
     turns with it; the first frame is the still view's), 0 a still view as the pre-check
     takes it now.
     "found": an ellipse returned; "uncertain": found, but its e's standard uncertainty
-    exceeds RIM_E_STD, so it cannot support the 0.003 bound (listed with its error); the
+    exceeds RIM_E_STD, so it cannot support the 0.003 bound (listed with its error, as is
+    a certain fit off by more than RIM_PULL_LISTED of its uncertainty); the
     error columns are over the rest, "max, all" over every fit returned; "pull" is the
     largest |error| / standard uncertainty, "z RMS" the RMS of error / standard uncertainty
     over every fit returned (about 1 where the uncertainty is honest)."""
