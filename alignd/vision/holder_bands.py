@@ -475,24 +475,24 @@ _SOFT_SEPS, _SOFT_SPLITS = (1.5, 3.0), (0.0, 0.5)
 _MIN_OFF_SOFT, _SOFT_MAX_IN = 0.05, 1.5
 
 
-def _soft_bands(prof: SideProfiles, P1: np.ndarray, cost1: np.ndarray, usable: np.ndarray,
-                within: np.ndarray) -> list[Band]:
+def _soft_bands(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.ndarray,
+                usable: np.ndarray, within: np.ndarray) -> list[Band]:
     """The sides beside a soft band: a cast shadow 1-3 px beyond a side, its edge softer
     than the holder's (the camera's blur and the lamp's penumbra), too near to resolve as
     two steps of one blur (:func:`side_bands`). One lens blurs all four sides of the flat
     face alike, so the other sides tell the holder's edge's blur: held at that, the inner
     step is the edge and the outer one the band's (corpus frames whose side was 0.4-0.5
-    px outside the holder's edge: 0.1 px). ``P1``, ``cost1``: the one-step fits of
-    ``prof`` (clipped bins left out), ``usable``: sides with enough pixels, ``within``:
-    the pixels' scatter within the bins. A band along opposite sides, or at the level of
-    the face just inside the opposite side, is left alone (see :func:`side_bands`)."""
+    px outside the holder's edge: 0.1 px). ``cnt``: ``prof``'s pixel counts, clipped
+    bins left out; ``P1``, ``cost1``: the one-step fits of ``prof`` with them;
+    ``usable``: sides with enough pixels; ``within``: the pixels' scatter within the bins.
+    A band along opposite sides, or at the level of the face just inside the opposite
+    side, is left alone (see :func:`side_bands`)."""
     live = np.flatnonzero(usable)
     if live.size < 3:
         return []
     blur = P1[:, 2]
     cam = np.array([float(np.median(blur[live[live != k]])) for k in range(4)])
     x, m, foot = prof.x, prof.m, prof.foot
-    cnt = np.where(prof.clipped > 0, 0.0, prof.cnt)
     # only a side one step misfits beyond its noise can fit two steps _SOFT_GAIN times
     # better: its residual sum over what the pixels' scatter within the bins gives
     # (a fit costs about 5 ms a side)
@@ -555,7 +555,8 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
     the same way or on the outer one, outside the inner one (module docstring); [] when
     none is, or when the side opposite one that is steps twice the same way as well,
     wherever its found side lies (a band all round lies inside the face, not beside it),
-    or the face just inside it is at the band's level (:func:`plate_rim`).
+    or the face just inside it is at the band's level (:func:`plate_rim`). Where none is
+    found, the sides beside a soft band (:func:`_soft_bands`).
     ``profiles``: these sides' profiles already read (:func:`read_sides`, a reach of
     ``REACH`` or more)."""
     c = np.asarray(corners, float)
@@ -652,10 +653,10 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
         return bands, twice
 
     if not usable.any():
-        return _soft_bands(prof, P1, cost1, usable_any, within)
+        return _soft_bands(prof, cnt, P1, cost1, usable_any, within)
     bands, twice = examine(np.flatnonzero(usable))
     if not bands:
-        return _soft_bands(prof, P1, cost1, usable_any, within)
+        return _soft_bands(prof, cnt, P1, cost1, usable_any, within)
     # a band along opposite sides lies inside the face (a plate, a chamfer all round): left
     # alone whether or not the found side passed as beside it there too (a dark plate 4 px
     # inside both long sides: the found sides 0.45 and 0.53 px outside the outer steps, one
