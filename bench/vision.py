@@ -505,11 +505,12 @@ def _rim_score(d: dict[str, list[float]], f: RimFit, truth: float, label: str) -
         log_line(f"{label}: uncertain, e {f.eccentricity:.4f} +- {f.eccentricity_std:.4f} "
                  f"(true {truth:.4f}, error {err:+.4f})")
         return
+    pull = abs(err) / f.eccentricity_std
     d["err"].append(err)
-    d["pull"].append(abs(err) / f.eccentricity_std)
-    if abs(err) > RIM_PULL_LISTED * f.eccentricity_std:
+    d["pull"].append(pull)
+    if pull > RIM_PULL_LISTED:
         # certain, and wrong by more than its uncertainty allows: listed as well
-        log_line(f"{label}: certain but {abs(err) / f.eccentricity_std:.1f} u off, e "
+        log_line(f"{label}: certain but {pull:.1f} u off, e "
                  f"{f.eccentricity:.4f} +- {f.eccentricity_std:.4f} (true {truth:.4f}, "
                  f"error {err:+.4f})")
 

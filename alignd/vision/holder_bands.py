@@ -298,6 +298,32 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
     return P, cost, Jw.transpose(0, 2, 1) @ J
 
 
+def _one_step_residuals(prof: SideProfiles, P1: np.ndarray, k: int) -> np.ndarray:
+    """Side ``k``'s profile less its one-step fit (row ``k`` of ``P1``)."""
+    return prof.m[k] - steps_model(P1[k:k + 1], prof.x[k:k + 1], prof.foot[k:k + 1], 1)[0][0]
+
+
+def _best_of_starts(P: np.ndarray, sides: np.ndarray, n_starts: int, prof: SideProfiles,
+                    cnt: np.ndarray, own_blur: bool = False,
+                    held_blur: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two steps fitted to each of ``sides`` (``prof``'s profiles, ``cnt`` their weights)
+    from its ``n_starts`` rows of ``P`` (side by side): a few iterations from every start,
+    then the best start of each side to the end (most starts of a side end in the same
+    place; the others wander and cost iterations). ``own_blur``, ``held_blur`` (one a
+    side of the four) as :func:`fit_steps`. Returns its parameters, residual sums and
+    normal matrices, a row a side."""
+    x, m, foot = prof.x, prof.m, prof.foot
+    rows = np.repeat(sides, n_starts)
+    held = None if held_blur is None else held_blur[rows]
+    P, cost, _ = fit_steps(P, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5,
+                           own_blur=own_blur, held_blur=held)
+    best = [int(np.flatnonzero(rows == k)[np.argmin(cost[rows == k])]) for k in sides]
+    held = None if held_blur is None else held_blur[sides]
+    return fit_steps(P[best], x[sides], m[sides], cnt[sides], foot[sides], 2,
+                     own_blur=own_blur, held_blur=held)
+
+
 def _resolvable(x: np.ndarray, r: np.ndarray, cnt: np.ndarray, inner: float, outer: float,
                 foot: np.ndarray, step: float) -> bool:
     """Whether two steps at ``inner`` and ``outer`` can be told from one on these bins
@@ -492,7 +518,7 @@ def _soft_bands(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.n
         return []
     blur = P1[:, 2]
     cam = np.array([float(np.median(blur[live[live != k]])) for k in range(4)])
-    x, m, foot = prof.x, prof.m, prof.foot
+    x, foot = prof.x, prof.foot
     # only a side one step misfits beyond its noise can fit two steps _SOFT_GAIN times
     # better: its residual sum over what the pixels' scatter within the bins gives
     # (a fit costs about 5 ms a side)
@@ -507,12 +533,8 @@ def _soft_bands(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.n
                     d - split * sep + sep, 1.3 * cam[k]]
                    for k in todo for (a, g, _s, cc, d) in P1[k:k + 1]
                    for sep, split in starts])
-    rows = np.repeat(todo, len(starts))
-    P2, cost2, _ = fit_steps(P2, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5,
-                             own_blur=True, held_blur=cam[rows])
-    best = [int(np.flatnonzero(rows == k)[np.argmin(cost2[rows == k])]) for k in todo]
-    P2, cost2, A2 = fit_steps(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2,
-                              own_blur=True, held_blur=cam[todo])
+    P2, cost2, A2 = _best_of_starts(P2, todo, len(starts), prof, cnt, own_blur=True,
+                                    held_blur=cam)
     bands = []
     for b, k in enumerate(todo):
         a, g, _s, c1, d1, c2, d2, _s2 = (float(v) for v in P2[b])
@@ -522,9 +544,8 @@ def _soft_bands(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.n
         if not (gain >= _SOFT_GAIN and c1 * c2 > 0 and c0 != 0
                 and abs((c1 + c2) / c0 - 1.0) <= _WHOLE and share >= _MIN_SHARE_CLEAR
                 and d2 - d1 >= _MIN_SEP and -_SOFT_MAX_IN <= d1 <= -_MIN_OFF_SOFT
-                and _resolvable(x[k], m[k] - steps_model(P1[k:k + 1], x[k:k + 1],
-                                                         foot[k:k + 1], 1)[0][0],
-                                cnt[k], d1, d2, foot[k], c0)):
+                and _resolvable(x[k], _one_step_residuals(prof, P1, k), cnt[k], d1, d2,
+                                foot[k], c0)):
             continue
         # the inner step's standard error, as a hard band's (the blur held: the other 7
         # parameters' normal matrix)
@@ -599,12 +620,7 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
         P2 = np.array([[a, 0.0, 0.6 * s1, cc / 2, d - split * sep, cc / 2,
                         d - split * sep + sep]
                        for (a, _g, s1, cc, d) in P1[todo] for sep, split in starts])
-        rows = np.repeat(todo, len(starts))
-        # a few steps from every start, then the best start of each side to the end (most
-        # starts of a side end in the same place; the others wander and cost iterations)
-        P2, cost2, _ = fit_steps(P2, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5)
-        best = [int(np.flatnonzero(rows == k)[np.argmin(cost2[rows == k])]) for k in todo]
-        P2, cost2, A2 = fit_steps(P2[best], x[todo], m[todo], cnt[todo], foot[todo], 2)
+        P2, cost2, A2 = _best_of_starts(P2, todo, len(starts), prof, cnt)
         bands, twice = [], set()
         for b, k in enumerate(todo):
             _a, _g, s2, c1, d1, c2, d2 = P2[b]
@@ -619,9 +635,8 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
                          or (share >= _MIN_SHARE_CLEAR and gain >= _CLEAR_GAIN))
                     and gain >= _MIN_GAIN
                     and outer - inner >= max(_MIN_SEP, _RESOLVED * s2)
-                    and _resolvable(x[k], m[k] - steps_model(P1[k:k + 1], x[k:k + 1],
-                                                             foot[k:k + 1], 1)[0][0],
-                                    cnt[k], inner, outer, foot[k], float(c0[k]))):
+                    and _resolvable(x[k], _one_step_residuals(prof, P1, k), cnt[k], inner,
+                                    outer, foot[k], float(c0[k]))):
                 continue
             # (or one edge through a lens out of focus)
             if one_disc_edge(x[k], m[k], cnt[k], foot[k], (c1, d1, c2, d2), float(cost2[b])):
