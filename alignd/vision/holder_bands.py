@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from alignd.vision.batch_lm import fit_rows
 from alignd.vision.holder_steps import side_frame
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import disc_edge, step_response
@@ -246,10 +247,6 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
     ``held_blur`` (one a row): the shared blur held there, and with ``own_blur`` the last
     step's kept at least as wide (an edge of a known blur with a softer step beside it)."""
     P = P.copy()
-    lam = np.full(len(P), 1e-3)
-    f, J = steps_model(P, x, foot, steps, own_blur)
-    cost = np.sum(w * (m - f) ** 2, axis=1)
-    eye = np.eye(P.shape[1])[None]
     # the bounds (one row a profile): the blurs within 0.2-4 px, the steps within reach
     lo, hi = np.full(P.shape, -np.inf), np.full(P.shape, np.inf)
     lo[:, 2], hi[:, 2] = 0.2, _MAX_BLUR
@@ -260,42 +257,12 @@ def fit_steps(P: np.ndarray, x: np.ndarray, m: np.ndarray, w: np.ndarray, foot: 
         if own_blur:
             lo[:, -1] = held_blur
             P[:, -1] = np.clip(P[:, -1], lo[:, -1], hi[:, -1])
-        f, J = steps_model(P, x, foot, steps, own_blur)
-        cost = np.sum(w * (m - f) ** 2, axis=1)
     lo[:, 4::2], hi[:, 4::2] = -reach + 0.5, reach - 0.5
-    live = np.ones(len(P), bool)  # rows still improving
-    for _ in range(iterations):
-        b = np.flatnonzero(live)
-        if b.size == 0:
-            break
-        Jw = J[b] * w[b, :, None]
-        A = Jw.transpose(0, 2, 1) @ J[b]
-        g = (Jw.transpose(0, 2, 1) @ (m[b] - f[b])[..., None])[..., 0]
-        # a parameter at its bound that the descent pushes beyond it is held there (an
-        # active set): clipped after every step instead, it crawled along the bound and
-        # took all the iterations (a sharp side's blur at 0.2 px)
-        held = ((P[b] <= lo[b]) & (g < 0)) | ((P[b] >= hi[b]) & (g > 0))
-        if held.any():
-            free = ~held
-            A = A * (free[:, :, None] & free[:, None, :]) + held[:, :, None] * eye
-            g = np.where(held, 0.0, g)
-        diag = np.einsum("bii->bi", A)[:, :, None] * eye
-        try:
-            step = np.linalg.solve(A + lam[b, None, None] * diag + 1e-12 * eye,
-                                   g[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            break
-        Q = np.clip(P[b] + step, lo[b], hi[b])
-        fq, Jq = steps_model(Q, x[b], foot[b], steps, own_blur)
-        cq = np.sum(w[b] * (m[b] - fq) ** 2, axis=1)
-        better = cq < cost[b]
-        ib = b[better]
-        small = better & (cost[b] - cq <= 1e-4 * cost[b])
-        P[ib], f[ib], J[ib], cost[ib] = Q[better], fq[better], Jq[better], cq[better]
-        lam[b] = np.where(better, lam[b] * 0.3, lam[b] * 10.0)
-        live[b[small | (lam[b] > 1e4)]] = False
-    Jw = J * w[..., None]
-    return P, cost, Jw.transpose(0, 2, 1) @ J
+
+    def model(Q: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return steps_model(Q, x[rows], foot[rows], steps, own_blur)
+
+    return fit_rows(P, model, m, w, lo, hi, iterations)
 
 
 def _one_step_residuals(prof: SideProfiles, P1: np.ndarray, k: int) -> np.ndarray:
