@@ -34,7 +34,9 @@ A soft band (a cast shadow 1-3 px beyond a side, its edge blurred by the lamp's 
 as well as the lens) lies about one blur from the edge: two steps of one blur do not
 resolve it. Where no band is found so, a side fitted softer than the other three is
 fitted again with its inner step held at their blur (one lens blurs the flat face's four
-sides alike) and its outer step at least as soft (:func:`_soft_bands`).
+sides alike) and its outer step at least as soft (:func:`_soft_bands`). Where there is no
+soft band either, a side one step misfits may lie at a cast shadow's soft edge, the shadow
+seen only beyond the holder's edge (:mod:`alignd.vision.holder_tails`).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from scipy.optimize import least_squares
 
 from alignd.vision.batch_lm import fit_rows
 from alignd.vision.holder_steps import side_frame
+from alignd.vision.holder_tails import shadow_tails
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import disc_edge, step_response
 
@@ -532,6 +535,20 @@ def _soft_bands(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.n
     return bands
 
 
+def _soft_or_tails(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.ndarray,
+                   usable: np.ndarray, within: np.ndarray) -> list[Band]:
+    """The sides beside a soft band (:func:`_soft_bands`, arguments as there), or where
+    there are none, the sides at a cast shadow's soft edge
+    (:func:`alignd.vision.holder_tails.shadow_tails`: their edge lies inside or outside the
+    found side; no band level, no share)."""
+    bands = _soft_bands(prof, cnt, P1, cost1, usable, within)
+    if bands:
+        return bands
+    return [Band(t.side, t.edge_px, t.edge_px + t.shadow_px, 0.0, t.gain, t.sigma_px,
+                 (math.nan, math.nan))
+            for t in shadow_tails(prof.x, prof.m, cnt, prof.foot, P1, cost1, within, usable)]
+
+
 _SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, ...
 _SPLITS = (0.0, 0.5, 1.0)  # ... the one step's place at the inner, middle, outer one
 
@@ -635,10 +652,10 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
         return bands, twice
 
     if not usable.any():
-        return _soft_bands(prof, cnt, P1, cost1, usable_any, within)
+        return _soft_or_tails(prof, cnt, P1, cost1, usable_any, within)
     bands, twice = examine(np.flatnonzero(usable))
     if not bands:
-        return _soft_bands(prof, cnt, P1, cost1, usable_any, within)
+        return _soft_or_tails(prof, cnt, P1, cost1, usable_any, within)
     # a band along opposite sides lies inside the face (a plate, a chamfer all round): left
     # alone whether or not the found side passed as beside it there too (a dark plate 4 px
     # inside both long sides: the found sides 0.45 and 0.53 px outside the outer steps, one

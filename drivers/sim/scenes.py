@@ -666,15 +666,16 @@ def hard_shadow_scene(offset_px: float, angle_deg: float, seed: int = 0,
 
 def soft_band_scene(width_px: float, shadow_blur_px: float, angle_deg: float,
                     seed: int = 0, blur_px: float = 2.2,
-                    levels: tuple[float, float] = (200.0, 60.0)
+                    levels: tuple[float, float] = (200.0, 60.0), across_px: float = 0.0
                     ) -> tuple[np.ndarray, np.ndarray]:
     """A dark 260 x 160 px holder at ``angle_deg`` in a 1280 x 720 frame (``levels``: disc
     and holder DN) with its cast shadow, 35 % deep, shifted ``width_px`` along its long
     side and blurred ``shadow_blur_px`` (a Gaussian): a soft band that wide beyond one
     short side, whose outer step is softer than the holder's edge (the random corpus'
     cast shadows, one side's worth). The frame blurred ``blur_px`` (a defocused camera:
-    both steps within a few blurs of each other), noise 1 DN. The 8-bit frame and the
-    holder's corners (corner 1 to 2 the side beside the band)."""
+    both steps within a few blurs of each other), noise 1 DN. ``across_px``: the shadow
+    shifted that far across the long sides as well (toward side 0 to 1's outside). The
+    8-bit frame and the holder's corners (corner 1 to 2 the side beside the band)."""
     w, h = 1280, 720
     ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
     disc, dark = levels
@@ -682,7 +683,8 @@ def soft_band_scene(width_px: float, shadow_blur_px: float, angle_deg: float,
     t = math.radians(angle_deg)
     u = np.array([math.cos(t), math.sin(t)])
     box = (0, 0, w, h)
-    shade = coverage(Polygon(held + width_px * u), ras, box).astype(np.float32)
+    n = np.array([math.sin(t), -math.cos(t)])  # out of side 0 to 1
+    shade = coverage(Polygon(held + width_px * u + across_px * n), ras, box).astype(np.float32)
     img = disc * (1.0 - 0.35 * cv2.GaussianBlur(shade, (0, 0), shadow_blur_px))
     img += (dark - img) * coverage(Polygon(held), ras, box)
     return _drawn_8bit(img, blur_px, 1.0, seed), held

@@ -1,0 +1,56 @@
+"""A holder's cast shadow whose edge lies within a pixel of a side
+(:mod:`alignd.vision.holder_tails`; :func:`drivers.sim.scenes.soft_band_scene` with the
+shadow shifted 0.8 px along the holder and 14 px across it).
+
+The floor just outside each short side rises from shadowed to lit over a few pixels (the
+shadow's edge blurred 2 px); the holder covers the shadow's part inside. One step read
+those sides 0.07-0.33 px off at a stated corner sigma of 0.03 px (corpus 9100 #811: both
+short sides of a light holder 0.27 px in). The shadow's tail is now fitted beyond the
+holder's edge, at the blur of the long sides."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+from test_vision_holder_soft_band import _outward_offset
+
+from alignd.vision.holder import track_holder
+from alignd.vision.holder_tails import tail_response
+from drivers.sim.scenes import soft_band_scene
+
+
+def test_the_tail_is_the_blurred_product_of_the_edge_and_the_shadows_step() -> None:
+    """:func:`tail_response` against the product drawn on a 0.002 px grid and blurred
+    numerically, the shadow's edge under, at and beyond the holder's."""
+    grid = np.arange(-30.0, 30.0, 0.002) + 0.001  # the edge between two samples
+    x = np.linspace(-6.0, 8.0, 29)
+    for shadow, soft, s in ((0.7, 2.0, 1.3), (-3.0, 4.0, 1.0), (2.0, 1.5, 0.8)):
+        drawn = (grid > 0) * ndtr((grid - shadow) / soft)
+        kernel = np.exp(-0.5 * (np.arange(-5000, 5001) * 0.002 / s) ** 2)
+        blurred = np.convolve(drawn, kernel / kernel.sum(), mode="same")
+        want = np.interp(x, grid, blurred)
+        got = tail_response(x, np.full_like(x, shadow), np.full_like(x, soft),
+                            np.full_like(x, s))[0]
+        assert np.max(np.abs(got - want)) < 1e-4
+
+
+# the short sides were up to 0.083, 0.087 and 0.326 px off
+@pytest.mark.parametrize(("levels", "width_px", "angle_deg"), [
+    ((110.0, 200.0), 0.8, 33.0),  # a light holder: a dip beyond its sides
+    ((110.0, 200.0), -0.8, -20.0),
+    ((200.0, 60.0), -0.8, 33.0),  # a dark one: a slower rise beyond them
+])
+def test_a_shadows_edge_at_a_side_is_told_from_the_holders(
+        levels: tuple[float, float], width_px: float, angle_deg: float) -> None:
+    """Both short sides within 0.04 px of the holder's edge, the long sides where they
+    were (within 0.01 px), and the corners' stated sigma covering what is left."""
+    img, corners = soft_band_scene(width_px, 2.0, angle_deg, blur_px=1.0, levels=levels,
+                                   across_px=14.0)
+    det = track_holder(img, expected_size_px=(260.0, 160.0))
+    assert det.ok, det.reason
+    off = [_outward_offset(det.corners_px, corners, k) for k in range(4)]
+    assert max(abs(off[1]), abs(off[3])) < 0.04, off
+    assert max(abs(off[0]), abs(off[2])) < 0.01, off
+    assert det.banded_sides == 2
+    assert det.corner_sigma_px > 0.5 * max(abs(v) for v in off)
