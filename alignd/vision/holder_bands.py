@@ -100,7 +100,9 @@ _WORSE = 2.0  # only sides one step fits this many times worse than the best sid
 @dataclass(frozen=True)
 class Band:
     """Side ``side`` (corner ``side`` to ``side + 1``) steps twice: its inner step lies
-    ``inner_px`` from the found side (negative: inside) and is the holder's edge."""
+    ``inner_px`` from the found side (negative: inside) and is the holder's edge. (At a
+    shadow's soft edge, :func:`_soft_or_tails`, the edge may lie outside; no share and
+    no band level.)"""
 
     side: int
     inner_px: float
