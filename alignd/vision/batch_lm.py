@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["Model", "fit_rows"]
+__all__ = ["Model", "best_starts", "fit_rows", "pixel_variance"]
 
 # the model at parameters P (rows ``rows`` of the batch): its values (B, bins) and its
 # Jacobian (B, bins, parameters)
@@ -63,3 +63,17 @@ def fit_rows(P: np.ndarray, model: Model, m: np.ndarray, w: np.ndarray, lo: np.n
         live[b[small | (lam[b] > 1e4)]] = False
     Jw = J * w[..., None]
     return P, cost, Jw.transpose(0, 2, 1) @ J
+
+
+def best_starts(cost: np.ndarray, n_starts: int) -> np.ndarray:
+    """The row of each problem's cheapest start, its ``n_starts`` starts being consecutive
+    rows with residual sums ``cost``."""
+    per = cost.reshape(-1, n_starts)
+    return np.argmin(per, axis=1) + n_starts * np.arange(len(per))
+
+
+def pixel_variance(cnt: np.ndarray, within: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per binned profile (rows of ``cnt``, its bins' pixel counts; ``within``, the pixels'
+    sum of squares about their bins' means): a pixel's noise variance and the bins held."""
+    bins = np.count_nonzero(cnt > 0, axis=1)
+    return within / np.maximum(cnt.sum(axis=1) - bins, 1.0), bins

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from alignd.vision.batch_lm import fit_rows
+from alignd.vision.batch_lm import best_starts, fit_rows, pixel_variance
 from alignd.vision.holder_steps import side_frame
 from alignd.vision.holder_tails import shadow_tails
 from alignd.vision.lens import Lens
@@ -290,7 +290,7 @@ def _best_of_starts(P: np.ndarray, sides: np.ndarray, n_starts: int, prof: SideP
     held = None if held_blur is None else held_blur[rows]
     P, cost, _ = fit_steps(P, x[rows], m[rows], cnt[rows], foot[rows], 2, iterations=5,
                            own_blur=own_blur, held_blur=held)
-    best = [int(np.flatnonzero(rows == k)[np.argmin(cost[rows == k])]) for k in sides]
+    best = best_starts(cost, n_starts)
     held = None if held_blur is None else held_blur[sides]
     return fit_steps(P[best], x[sides], m[sides], cnt[sides], foot[sides], 2,
                      own_blur=own_blur, held_blur=held)
@@ -494,8 +494,8 @@ def _soft_bands(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.n
     # only a side one step misfits beyond its noise can fit two steps _SOFT_GAIN times
     # better: its residual sum over what the pixels' scatter within the bins gives
     # (a fit costs about 5 ms a side)
-    bins = np.count_nonzero(cnt > 0, axis=1)
-    noise = within / np.maximum(cnt.sum(axis=1) - bins, 1.0) * np.maximum(bins - 8, 1)
+    var, bins = pixel_variance(cnt, within)
+    noise = var * np.maximum(bins - 8, 1)
     todo = np.array([k for k in live if blur[k] >= cam[k] + _SOFT_WIDER
                      and cost1[k] >= _SOFT_MISFIT * noise[k]], int)
     if todo.size == 0:
@@ -563,7 +563,8 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
     none is, or when the side opposite one that is steps twice the same way as well,
     wherever its found side lies (a band all round lies inside the face, not beside it),
     or the face just inside it is at the band's level (:func:`plate_rim`). Where none is
-    found, the sides beside a soft band (:func:`_soft_bands`).
+    found, the sides beside a soft band or at a shadow's soft edge
+    (:func:`_soft_or_tails`).
     ``profiles``: these sides' profiles already read (:func:`read_sides`, a reach of
     ``REACH`` or more)."""
     c = np.asarray(corners, float)

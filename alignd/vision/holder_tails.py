@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr, owens_t
 
-from alignd.vision.batch_lm import fit_rows
+from alignd.vision.batch_lm import best_starts, fit_rows, pixel_variance
 from alignd.vision.profile_fit import step_response
 
 __all__ = ["Tail", "shadow_tails", "tail_response"]
@@ -139,8 +139,7 @@ def shadow_tails(x: np.ndarray, m: np.ndarray, cnt: np.ndarray, foot: np.ndarray
     pixels, ``foot`` the footprints), given their one-step fits ``P1`` = (a, g, s, c, d)
     and residual sums ``cost1``, the pixels' scatter ``within`` the bins and the
     ``usable`` sides."""
-    bins = np.count_nonzero(cnt > 0, axis=1)
-    var = within / np.maximum(cnt.sum(axis=1) - bins, 1.0)  # a pixel's noise variance
+    var, bins = pixel_variance(cnt, within)
     misfit = cost1 / np.maximum(var * np.maximum(bins - 5, 1), 1e-12)
     clean = usable & (misfit < _TAIL_CLEAN)
     todo, cams = [], []
@@ -170,8 +169,7 @@ def shadow_tails(x: np.ndarray, m: np.ndarray, cnt: np.ndarray, foot: np.ndarray
 
     # a few steps from every start, then each side's best start to the end
     P, cost, _ = _fit(P, x[rows], m[rows], cnt[rows], foot[rows], cam_r, lo, hi, 5)
-    best = np.array([i * n + int(np.argmin(cost[i * n:(i + 1) * n]))
-                     for i in range(len(sides))])
+    best = best_starts(cost, n)
     P, cost, A = _fit(P[best], x[sides], m[sides], cnt[sides], foot[sides], cam, lo[best],
                       hi[best], 40)
     tails = []
