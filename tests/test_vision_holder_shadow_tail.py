@@ -55,3 +55,27 @@ def test_a_shadows_edge_at_a_side_is_told_from_the_holders(
     assert max(abs(off[0]), abs(off[2])) < 0.01, off
     assert det.banded_sides == 2
     assert det.corner_sigma_px > 0.5 * max(abs(v) for v in off)
+
+
+# the long sides were 0.19-0.30 px off, the short side beside the band 0.2 px off where
+# its step further out was not looked for
+@pytest.mark.parametrize(("levels", "angle_deg"), [
+    ((110.0, 200.0), 33.0),
+    ((110.0, 200.0), -20.0),  # the short side's fit cleared only by the neighbour look
+    ((200.0, 60.0), 33.0),
+    ((200.0, 60.0), 8.0),
+])
+def test_a_shadow_shifted_along_the_holder_lies_at_both_long_sides(
+        levels: tuple[float, float], angle_deg: float) -> None:
+    """The shadow shifted 8 px along the holder: its edges lie at both long sides and 8 px
+    beyond one short side, under the other. Only one side fits one step cleanly, so its
+    blur is the camera's (the opposite sides' tails are a shifted outline's pair): the long
+    sides within 0.12 px, the short ones within 0.06, the sigma covering what is left."""
+    img, corners = soft_band_scene(8.0, 2.0, angle_deg, blur_px=1.9, levels=levels)
+    det = track_holder(img, expected_size_px=(260.0, 160.0))
+    assert det.ok, det.reason
+    off = [_outward_offset(det.corners_px, corners, k) for k in range(4)]
+    assert max(abs(off[0]), abs(off[2])) < 0.12, off
+    assert max(abs(off[1]), abs(off[3])) < 0.06, off
+    assert det.tail_sides == 2
+    assert det.corner_sigma_px > 0.5 * max(abs(v) for v in off)

@@ -111,6 +111,7 @@ class Band:
     gain: float  # the one step's residual sum of squares over the two steps'
     sigma_px: float  # standard error of inner_px (from the fit's residuals)
     levels: tuple[float, float]  # DN: the band's level and the face's beyond its inner step
+    tail: bool = False  # a shadow's soft edge at the side, no band (:func:`_soft_or_tails`)
 
 
 @dataclass(frozen=True)
@@ -547,7 +548,7 @@ def _soft_or_tails(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: n
     if bands:
         return bands
     return [Band(t.side, t.edge_px, t.edge_px + t.shadow_px, 0.0, t.gain, t.sigma_px,
-                 (math.nan, math.nan))
+                 (math.nan, math.nan), tail=True)
             for t in shadow_tails(prof.x, prof.m, cnt, prof.foot, P1, cost1, within, usable)]
 
 
