@@ -666,8 +666,8 @@ def hard_shadow_scene(offset_px: float, angle_deg: float, seed: int = 0,
 
 def soft_band_scene(width_px: float, shadow_blur_px: float, angle_deg: float,
                     seed: int = 0, blur_px: float = 2.2,
-                    levels: tuple[float, float] = (200.0, 60.0), across_px: float = 0.0
-                    ) -> tuple[np.ndarray, np.ndarray]:
+                    levels: tuple[float, float] = (200.0, 60.0), across_px: float = 0.0,
+                    supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """A dark 260 x 160 px holder at ``angle_deg`` in a 1280 x 720 frame (``levels``: disc
     and holder DN) with its cast shadow, 35 % deep, shifted ``width_px`` along its long
     side and blurred ``shadow_blur_px`` (a Gaussian): a soft band that wide beyond one
@@ -675,18 +675,33 @@ def soft_band_scene(width_px: float, shadow_blur_px: float, angle_deg: float,
     cast shadows, one side's worth). The frame blurred ``blur_px`` (a defocused camera:
     both steps within a few blurs of each other), noise 1 DN. ``across_px``: the shadow
     shifted that far across the long sides as well (toward side 0 to 1's outside). The
-    8-bit frame and the holder's corners (corner 1 to 2 the side beside the band)."""
+    8-bit frame and the holder's corners (corner 1 to 2 the side beside the band).
+
+    ``supersample``: drawn on a grid that many times finer, blurred there and each pixel
+    the mean of its subpixels, as a camera forms it (its lens blurs the light, then each
+    pixel gathers its area). Otherwise the blur is a kernel sampled at whole pixels over
+    the pixels' areas, which departs from that near the pixel axes: a side at 8 deg then
+    misfits one blurred step by 2-3 times its noise (docs/vision.md, "A shadow's edge at
+    a side")."""
+    f = supersample
     w, h = 1280, 720
-    ras = Raster((w, h), 1000.0, (w / 2, h / 2), 0.0)
+    ras = Raster((w * f, h * f), 1000.0 * f, (w * f / 2, h * f / 2), 0.0)
     disc, dark = levels
     held = rectangle((640.3, 360.7), 260.0, 160.0, angle_deg)
     t = math.radians(angle_deg)
     u = np.array([math.cos(t), math.sin(t)])
-    box = (0, 0, w, h)
+    box = (0, 0, w * f, h * f)
     n = np.array([math.sin(t), -math.cos(t)])  # out of side 0 to 1
-    shade = coverage(Polygon(held + width_px * u + across_px * n), ras, box).astype(np.float32)
-    img = disc * (1.0 - 0.35 * cv2.GaussianBlur(shade, (0, 0), shadow_blur_px))
-    img += (dark - img) * coverage(Polygon(held), ras, box)
+
+    def fine(p: np.ndarray) -> Polygon:  # (a pixel's centre is its subpixels' middle)
+        return Polygon(p * f + (f - 1) / 2)
+
+    shade = coverage(fine(held + width_px * u + across_px * n), ras, box).astype(np.float32)
+    img = disc * (1.0 - 0.35 * cv2.GaussianBlur(shade, (0, 0), shadow_blur_px * f))
+    img += (dark - img) * coverage(fine(held), ras, box)
+    if f > 1:
+        lens = cv2.GaussianBlur(img.astype(np.float32), (0, 0), blur_px * f)
+        return _drawn_8bit(lens.reshape(h, f, w, f).mean(axis=(1, 3)), 0.0, 1.0, seed), held
     return _drawn_8bit(img, blur_px, 1.0, seed), held
 
 
