@@ -85,18 +85,23 @@ def test_a_shadow_shifted_along_the_holder_lies_at_both_long_sides(
     ((110.0, 200.0), 0.8, 8.0),
     ((110.0, 200.0), -0.8, 3.0),
     ((200.0, 60.0), 0.8, 8.0),
+    ((200.0, 60.0), 0.8, 3.0),  # a soft band on one short side, 0.21 px off, before
+    ((200.0, 60.0), -0.8, 3.0),
 ])
 def test_near_the_pixel_axes_drawn_as_a_camera_forms_it(
         levels: tuple[float, float], width_px: float, angle_deg: float) -> None:
     """The holders above at 3-8 deg, drawn 4 times finer, blurred and then averaged over
-    each pixel (a lens, then the pixels' areas): every side within 0.03 px, both short
-    sides fitted with the shadow's tail. Drawn with the blur sampled at whole pixels,
-    the long sides misfit one step by 2-3 times their noise and the short sides stayed
-    0.09-0.33 px off: that was the drawing, not the fit."""
+    each pixel (a lens, then the pixels' areas): every side within 0.04 px, both short
+    sides moved, at least one by the shadow's tail. Drawn with the blur sampled at whole
+    pixels, the long sides misfit one step by 2-3 times their noise and the short sides
+    stayed 0.09-0.33 px off: that was the drawing, not the fit. (A dark holder's short
+    sides also fit a soft band, two steps the same way; the model that gains more over
+    one step is taken.)"""
     img, corners = soft_band_scene(width_px, 2.0, angle_deg, blur_px=1.0, levels=levels,
                                    across_px=14.0, supersample=4)
     det = track_holder(img, expected_size_px=(260.0, 160.0))
     assert det.ok, det.reason
     off = [_outward_offset(det.corners_px, corners, k) for k in range(4)]
-    assert max(abs(v) for v in off) < 0.03, off
-    assert det.tail_sides == 2
+    assert max(abs(v) for v in off) < 0.04, off
+    assert det.banded_sides == 2
+    assert det.tail_sides >= 1

@@ -49,7 +49,7 @@ from scipy.optimize import least_squares
 
 from alignd.vision.batch_lm import best_starts, fit_rows, pixel_variance
 from alignd.vision.holder_steps import side_frame
-from alignd.vision.holder_tails import shadow_tails
+from alignd.vision.holder_tails import Tail, shadow_tails
 from alignd.vision.lens import Lens
 from alignd.vision.profile_fit import disc_edge, step_response
 
@@ -540,16 +540,25 @@ def _soft_bands(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.n
 
 def _soft_or_tails(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.ndarray,
                    usable: np.ndarray, within: np.ndarray) -> list[Band]:
-    """The sides beside a soft band (:func:`_soft_bands`, arguments as there), or where
-    there are none, the sides at a cast shadow's soft edge
-    (:func:`alignd.vision.holder_tails.shadow_tails`: their edge lies inside or outside the
-    found side; no band level, no share)."""
-    bands = _soft_bands(prof, cnt, P1, cost1, usable, within)
-    if bands:
-        return bands
-    return [Band(t.side, t.edge_px, t.edge_px + t.shadow_px, 0.0, t.gain, t.sigma_px,
-                 (math.nan, math.nan), tail=True)
-            for t in shadow_tails(prof.x, prof.m, cnt, prof.foot, P1, cost1, within, usable)]
+    """The sides beside a soft band (:func:`_soft_bands`, arguments as there) and the
+    sides at a cast shadow's soft edge (:func:`alignd.vision.holder_tails.shadow_tails`:
+    their edge lies inside or outside the found side; no band level, no share), a side
+    that is both taken as whichever gains more over one step."""
+    bands = {b.side: b for b in _soft_bands(prof, cnt, P1, cost1, usable, within)}
+    # (a soft band's outer step a pixel or so beyond the side is a shadow's soft edge as
+    # well: a dark holder whose shadow's edge lies 0.8 px beyond a short side at 3 deg,
+    # drawn as a camera forms it, was moved 0.21 px in as beside a soft band, and its
+    # other short side stayed 0.05 px off; the tails read both within 0.02 px)
+    for t in shadow_tails(prof.x, prof.m, cnt, prof.foot, P1, cost1, within, usable):
+        if t.side not in bands or t.gain > bands[t.side].gain:
+            bands[t.side] = _as_band(t)
+    return [bands[k] for k in sorted(bands)]
+
+
+def _as_band(t: Tail) -> Band:
+    """A side at a shadow's soft edge as :func:`side_bands` returns it."""
+    return Band(t.side, t.edge_px, t.edge_px + t.shadow_px, 0.0, t.gain, t.sigma_px,
+                (math.nan, math.nan), tail=True)
 
 
 _SEPS = (1.5, 3.0, 5.0)  # the two-step fit's starts: the steps this far apart, ...
@@ -564,7 +573,7 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
     none is, or when the side opposite one that is steps twice the same way as well,
     wherever its found side lies (a band all round lies inside the face, not beside it),
     or the face just inside it is at the band's level (:func:`plate_rim`). Where none is
-    found, the sides beside a soft band or at a shadow's soft edge
+    found, the sides beside a soft band and those at a shadow's soft edge
     (:func:`_soft_or_tails`).
     ``profiles``: these sides' profiles already read (:func:`read_sides`, a reach of
     ``REACH`` or more)."""
