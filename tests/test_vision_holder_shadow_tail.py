@@ -16,7 +16,7 @@ from scipy.signal import fftconvolve
 from scipy.special import ndtr
 from test_vision_holder_soft_band import _outward_offset
 
-from alignd.vision.holder import track_holder
+from alignd.vision.holder import HolderDetection, track_holder
 from alignd.vision.holder_tails import tail_response
 from drivers.sim.scenes import soft_band_scene
 
@@ -36,6 +36,14 @@ def test_the_tail_is_the_blurred_product_of_the_edge_and_the_shadows_step() -> N
         assert np.max(np.abs(got - want)) < 1e-4
 
 
+def _found(img: np.ndarray, corners: np.ndarray) -> tuple[HolderDetection, list[float]]:
+    """The 260 x 160 px holder found in ``img``, and how far outside each of its true
+    sides (``corners``) it lies (px)."""
+    det = track_holder(img, expected_size_px=(260.0, 160.0))
+    assert det.ok, det.reason
+    return det, [_outward_offset(det.corners_px, corners, k) for k in range(4)]
+
+
 # the short sides were up to 0.083, 0.087 and 0.326 px off
 @pytest.mark.parametrize(("levels", "width_px", "angle_deg"), [
     ((110.0, 200.0), 0.8, 33.0),  # a light holder: a dip beyond its sides
@@ -48,9 +56,7 @@ def test_a_shadows_edge_at_a_side_is_told_from_the_holders(
     were (within 0.01 px), and the corners' stated sigma covering what is left."""
     img, corners = soft_band_scene(width_px, 2.0, angle_deg, blur_px=1.0, levels=levels,
                                    across_px=14.0)
-    det = track_holder(img, expected_size_px=(260.0, 160.0))
-    assert det.ok, det.reason
-    off = [_outward_offset(det.corners_px, corners, k) for k in range(4)]
+    det, off = _found(img, corners)
     assert max(abs(off[1]), abs(off[3])) < 0.04, off
     assert max(abs(off[0]), abs(off[2])) < 0.01, off
     assert det.banded_sides == 2
@@ -72,9 +78,7 @@ def test_a_shadow_shifted_along_the_holder_lies_at_both_long_sides(
     blur is the camera's (the opposite sides' tails are a shifted outline's pair): the long
     sides within 0.12 px, the short ones within 0.06, the sigma covering what is left."""
     img, corners = soft_band_scene(8.0, 2.0, angle_deg, blur_px=1.9, levels=levels)
-    det = track_holder(img, expected_size_px=(260.0, 160.0))
-    assert det.ok, det.reason
-    off = [_outward_offset(det.corners_px, corners, k) for k in range(4)]
+    det, off = _found(img, corners)
     assert max(abs(off[0]), abs(off[2])) < 0.12, off
     assert max(abs(off[1]), abs(off[3])) < 0.06, off
     assert det.tail_sides == 2
@@ -99,9 +103,7 @@ def test_near_the_pixel_axes_drawn_as_a_camera_forms_it(
     one step is taken.)"""
     img, corners = soft_band_scene(width_px, 2.0, angle_deg, blur_px=1.0, levels=levels,
                                    across_px=14.0, supersample=4)
-    det = track_holder(img, expected_size_px=(260.0, 160.0))
-    assert det.ok, det.reason
-    off = [_outward_offset(det.corners_px, corners, k) for k in range(4)]
+    det, off = _found(img, corners)
     assert max(abs(v) for v in off) < 0.04, off
     assert det.banded_sides == 2
     assert det.tail_sides >= 1
