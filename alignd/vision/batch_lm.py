@@ -7,11 +7,12 @@ through each step together, and a row that stops improving leaves the batch.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["Model", "best_starts", "fit_rows", "pixel_variance"]
+__all__ = ["Model", "best_starts", "fit_rows", "pixel_variance", "standard_error"]
 
 # the model at parameters P (rows ``rows`` of the batch): its values (B, bins) and its
 # Jacobian (B, bins, parameters)
@@ -77,3 +78,16 @@ def pixel_variance(cnt: np.ndarray, within: np.ndarray) -> tuple[np.ndarray, np.
     sum of squares about their bins' means): a pixel's noise variance and the bins held."""
     bins = np.count_nonzero(cnt > 0, axis=1)
     return within / np.maximum(cnt.sum(axis=1) - bins, 1.0), bins
+
+
+def standard_error(A: np.ndarray, j: int, cost: float, within: float, pixels: float,
+                   parameters: int) -> float:
+    """Parameter ``j``'s standard error in a fit of ``parameters`` to a binned profile of
+    ``pixels`` (its normal matrix ``A``): the inverse's diagonal scaled by a pixel's
+    variance about the fit, its residual sum ``cost`` (the bins' about the model) plus
+    ``within`` (the pixels' about their bins' means); inf where ``A`` is singular."""
+    var_px = (cost + within) / max(pixels - parameters, 1.0)
+    try:
+        return math.sqrt(max(float(np.linalg.inv(A)[j, j]) * var_px, 0.0))
+    except np.linalg.LinAlgError:
+        return math.inf

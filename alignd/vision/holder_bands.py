@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from alignd.vision.batch_lm import best_starts, fit_rows, pixel_variance
+from alignd.vision.batch_lm import best_starts, fit_rows, pixel_variance, standard_error
 from alignd.vision.holder_steps import side_frame
 from alignd.vision.holder_tails import Tail, shadow_tails
 from alignd.vision.lens import Lens
@@ -452,12 +452,8 @@ def _softer_outer(p: np.ndarray, cost: float, x: np.ndarray, m: np.ndarray,
     if not (float(cq[0]) < cost and c_in * c_out > 0 and s_out >= s_in
             and d_out - d_in >= _MIN_SEP):
         return None
-    var_px = (float(cq[0]) + within) / max(float(cnt.sum()) - 8.0, 1.0)
-    try:
-        var = float(np.linalg.inv(A[0])[4, 4]) * var_px
-    except np.linalg.LinAlgError:
-        return None
-    return d_in, math.sqrt(max(var, 0.0))
+    sigma = standard_error(A[0], 4, float(cq[0]), within, float(cnt.sum()), 8)
+    return None if math.isinf(sigma) else (d_in, sigma)
 
 
 # a soft band (docs/vision.md, "A soft band"): a side fitted _SOFT_WIDER px or more softer
@@ -522,13 +518,9 @@ def _soft_bands(prof: SideProfiles, cnt: np.ndarray, P1: np.ndarray, cost1: np.n
             continue
         # the inner step's standard error, as a hard band's (the blur held: the other 7
         # parameters' normal matrix)
-        var_px = (float(cost2[b]) + within[k]) / max(float(cnt[k].sum()) - 7.0, 1.0)
         free = [0, 1, 3, 4, 5, 6, 7]
-        try:
-            sigma = math.sqrt(max(float(np.linalg.inv(A2[b][np.ix_(free, free)])[3, 3])
-                                  * var_px, 0.0))
-        except np.linalg.LinAlgError:
-            sigma = math.inf
+        sigma = standard_error(A2[b][np.ix_(free, free)], 3, float(cost2[b]),
+                               float(within[k]), float(cnt[k].sum()), 7)
         bands.append(Band(int(k), d1, d2, share, gain, sigma,
                           band_levels(a, g, d1, d2, c1)))
     if any((bd.side + 2) % 4 in {o.side for o in bands} for bd in bands):
@@ -649,12 +641,8 @@ def side_bands(gray: np.ndarray, corners: np.ndarray, lens: Lens | None = None,
                 continue
             # inner's standard error: the normal matrix scaled by the pixels' scatter
             # about the fit (within the bins and the bins' about the model)
-            j = 4 if d1 <= d2 else 6
-            var_px = (float(cost2[b]) + within[k]) / max(float(cnt[k].sum()) - 7.0, 1.0)
-            try:
-                sigma = math.sqrt(max(float(np.linalg.inv(A2[b])[j, j]) * var_px, 0.0))
-            except np.linalg.LinAlgError:
-                sigma = math.inf
+            sigma = standard_error(A2[b], 4 if d1 <= d2 else 6, float(cost2[b]),
+                                   float(within[k]), float(cnt[k].sum()), 7)
             levels = band_levels(_a, _g, inner, outer, c1 if d1 <= d2 else c2)
             softer = _softer_outer(P2[b], float(cost2[b]), x[k], m[k], cnt[k], foot[k],
                                    float(within[k]))

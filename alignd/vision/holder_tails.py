@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr, owens_t
 
-from alignd.vision.batch_lm import best_starts, fit_rows, pixel_variance
+from alignd.vision.batch_lm import best_starts, fit_rows, pixel_variance, standard_error
 from alignd.vision.profile_fit import step_response
 
 __all__ = ["Tail", "shadow_tails", "tail_response"]
@@ -191,11 +191,8 @@ def shadow_tails(x: np.ndarray, m: np.ndarray, cnt: np.ndarray, foot: np.ndarray
         if not (gain >= _TAIL_GAIN and fits <= _TAIL_FITS and c1 * c0 > 0 and c2 > 0
                 and inside):
             continue
-        var_px = (float(cost[i]) + float(within[k])) / max(float(cnt[k].sum()) - 7.0, 1.0)
-        try:
-            sigma = math.sqrt(max(float(np.linalg.inv(A[i])[3, 3]) * var_px, 0.0))
-        except np.linalg.LinAlgError:
-            sigma = math.inf
+        sigma = standard_error(A[i], 3, float(cost[i]), float(within[k]),
+                               float(cnt[k].sum()), 7)
         # a move within its own noise is not made (one step's place is as good), but the
         # side is as uncertain as the fit says; the standard error is a generous one (the
         # shadow's place and blur trade off with the edge's): moves of 1-2 of it were
